@@ -1,0 +1,96 @@
+"""Typed containers of the estimator's model; all are JAX pytrees (NamedTuples), SI units."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+#: Indices into the state xi = [x y z theta xdot ydot zdot] (paper eq. 11).
+X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
+STATE_SIZE = 7
+OUTPUT_SIZE = 3
+#: Names of the six learned parameters, in the paper's order alpha_1..alpha_6 (eq. 9).
+PARAMETER_NAMES = ("k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR")
+RADIAL_PARAMETERS = PARAMETER_NAMES[:3]
+AXIAL_PARAMETERS = PARAMETER_NAMES[3:]
+
+
+class Rig(NamedTuple):
+    """Rotor and bearing geometry the estimator's model needs."""
+
+    mass: float  # m, kg
+    eccentricity: float  # e, m
+    speed: float  # omega, rad/s
+    radial_clearance: float  # r0, m
+    axial_clearance: float  # z0, m
+    gravity: float = 9.80665  # g, m/s^2
+
+
+class Nominal(NamedTuple):
+    """Nominal constant contact parameters f_0,1..f_0,6 (the baseline of the paper's ref. [13])."""
+
+    k_R: float  # radial stiffness, N/m
+    c_R: float  # radial damping, N s/m
+    mu: float  # friction coefficient, 1
+    k_Z: float  # axial stiffness, N/m
+    c_Z: float  # axial damping, N s/m
+    k_ZR: float  # tangential force per axial contact force, 1
+
+
+class Kernel(NamedTuple):
+    """PKBKR kernel: Gaussian Q on normalised rho = (r - r0, rdot) and zeta = (z + z0, zdot).
+
+    Centres are given in the same normalised coordinates as the kernel inputs:
+    deformation / deformation_scale and velocity / velocity_scale.
+    """
+
+    T_R: Array  # (m_R, 2) radial centre set
+    T_Z: Array  # (m_Z, 2) axial centre set
+    width: float  # Gaussian width sigma in normalised units
+    deformation_scale: float  # m
+    velocity_scale: float  # m/s
+
+
+class Coefficients(NamedTuple):
+    """PKBKR coefficients alpha_1..alpha_6, dimensionless (relative to each nominal value)."""
+
+    alpha_R: Array  # (3, m_R): alpha_1 (k_R), alpha_2 (c_R), alpha_3 (mu)
+    alpha_Z: Array  # (3, m_Z): alpha_4 (k_Z), alpha_5 (c_Z), alpha_6 (k_ZR)
+
+    @staticmethod
+    def zeros(kernel: Kernel) -> "Coefficients":
+        """All alpha = 0: the PKBKR model equals the constant model."""
+        return Coefficients(
+            alpha_R=jnp.zeros((3, kernel.T_R.shape[0])),
+            alpha_Z=jnp.zeros((3, kernel.T_Z.shape[0])),
+        )
+
+
+class Model(NamedTuple):
+    """Everything phi (eq. 12) depends on."""
+
+    rig: Rig
+    nominal: Nominal
+    kernel: Kernel
+    coeffs: Coefficients
+
+
+class FilterNoise(NamedTuple):
+    """EKF noise and initialisation (eq. 17): Q, R and P_0 as diagonals."""
+
+    process: Array  # (7,) diagonal of Q, state units^2 per sample
+    measurement: Array  # (3,) diagonal of R, m^2
+    initial: Array  # (7,) diagonal of P_0
+
+
+class ContactForces(NamedTuple):
+    """Contact forces on the rotor at one state (eq. 5-8), N, with the contact flags."""
+
+    F_n: Array  # radial (normal) force, positive pushes the rotor towards the centre
+    F_t: Array  # tangential force, positive along (sin a, -cos a)
+    F_z: Array  # axial force, positive upwards
+    F_x: Array  # F_n, F_t resolved on the sensor x axis (eq. 4a times m)
+    F_y: Array  # ... on the sensor y axis (eq. 4b times m)
+    radial_contact: Array  # bool, r > r0
+    axial_contact: Array  # bool, z < -z0

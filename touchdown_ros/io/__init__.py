@@ -1,0 +1,1 @@
+"""File formats: rosbag2/MCAP bags, coefficient files, rig YAML."""

@@ -1,0 +1,230 @@
+"""Rig YAML in ROS 2 parameter-file form -> typed configuration.
+
+The file holds ``<node name or /**>: ros__parameters: {...}``; nested keys are
+the dotted ROS parameter names (``rig.mass``). Unknown or missing keys, wrong
+types and non-physical values are refused with a message naming the key.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from touchdown_ros.core.types import Coefficients, FilterNoise, Kernel, Model, Nominal, Rig
+
+REFERENCE_RIG_NAME = "reference_rig.yaml"
+
+
+class ConfigError(ValueError):
+    """The rig YAML is missing, malformed or holds an invalid value."""
+
+
+@dataclass(frozen=True)
+class Topics:
+    displacement: str = "/amb/displacement"
+    velocity: str = "/touchdown/velocity"
+    acceleration: str = "/touchdown/acceleration"
+    contact_force: str = "/touchdown/contact_force"
+    displacement_estimate: str = "/touchdown/displacement"
+    truth_velocity: str = "/truth/velocity"
+    truth_acceleration: str = "/truth/acceleration"
+    truth_contact_force: str = "/truth/contact_force"
+    frame_id: str = "amb_sensor"
+
+
+@dataclass(frozen=True)
+class DropDetection:
+    threshold: float  # m below the levitated mean of z
+    levitated_window: float  # s
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything one rig YAML says, typed and validated."""
+
+    rig: Rig
+    nominal: Nominal
+    kernel: Kernel
+    noise: FilterNoise
+    sample_period: float  # s
+    noise_rms: float  # m
+    quantisation: float  # m
+    drop: DropDetection
+    regularisation: float  # lambda
+    topics: Topics
+    simulator: Mapping[str, Any] = field(default_factory=dict)
+    source: str = "<built-in>"
+    parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
+
+    def model(self, coeffs: Coefficients | None = None) -> Model:
+        """The estimator's model; all alpha = 0 (constant baseline) unless coeffs are given."""
+        return Model(self.rig, self.nominal, self.kernel, coeffs or Coefficients.zeros(self.kernel))
+
+    def fingerprint(self) -> str:
+        """SHA-256 of what a coefficient file depends on: rig, nominal values and kernel."""
+        return hashlib.sha256(json.dumps(self.model_identity(), sort_keys=True).encode()).hexdigest()
+
+    def model_identity(self) -> dict[str, Any]:
+        """The values a set of coefficients is only valid for, as plain JSON-able data."""
+        return {
+            "rig": dict(self.rig._asdict()),
+            "contact": dict(self.nominal._asdict()),
+            "kernel": {
+                "width": self.kernel.width,
+                "deformation_scale": self.kernel.deformation_scale,
+                "velocity_scale": self.kernel.velocity_scale,
+                "T_R": np.asarray(self.kernel.T_R).tolist(),
+                "T_Z": np.asarray(self.kernel.T_Z).tolist(),
+            },
+        }
+
+
+def reference_rig_path() -> Path:
+    """The packaged default rig: the repo's config/ or the installed share/touchdown_ros/config/."""
+    candidates = [
+        Path(__file__).resolve().parents[2] / "config" / REFERENCE_RIG_NAME,
+        Path(sys.prefix) / "share" / "touchdown_ros" / "config" / REFERENCE_RIG_NAME,
+    ]
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ConfigError(f"reference rig not found; looked in: {', '.join(map(str, candidates))}")
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Load a rig YAML (the reference rig when path is None); overrides are dotted keys."""
+    path = Path(path) if path is not None else reference_rig_path()
+    try:
+        document = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: rig file not found") from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    parameters = _ros_parameters(document, path)
+    flat = dict(_flatten(parameters))
+    flat.update(overrides or {})
+    return config_from_parameters(flat, source=str(path))
+
+
+def _ros_parameters(document: Any, path: Path) -> dict[str, Any]:
+    if not isinstance(document, dict) or not document:
+        raise ConfigError(f"{path}: expected a ROS 2 parameter file '<node>: ros__parameters: ...'")
+    for node, body in document.items():
+        if isinstance(body, dict) and isinstance(body.get("ros__parameters"), dict):
+            return body["ros__parameters"]
+    raise ConfigError(f"{path}: no '<node>: ros__parameters:' section found")
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = ""):
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            yield from _flatten(value, name + ".")
+        else:
+            yield name, value
+
+
+class _Reader:
+    """Takes typed values out of the flat parameter dict and remembers what it used."""
+
+    def __init__(self, flat: Mapping[str, Any], source: str):
+        self.flat, self.source, self.used = flat, source, set()
+
+    def _get(self, key: str, default: Any = ...) -> Any:
+        if key not in self.flat:
+            if default is ...:
+                raise ConfigError(f"{self.source}: missing parameter '{key}'")
+            return default
+        self.used.add(key)
+        return self.flat[key]
+
+    def number(self, key: str, default: Any = ..., positive: bool = False, non_negative: bool = False) -> float:
+        value = self._get(key, default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}")
+        if positive and value <= 0:
+            raise ConfigError(f"{self.source}: parameter '{key}' must be > 0, got {value!r}")
+        if non_negative and value < 0:
+            raise ConfigError(f"{self.source}: parameter '{key}' must be >= 0, got {value!r}")
+        return float(value)
+
+    def numbers(self, key: str, length: int | None = None, non_negative: bool = False) -> np.ndarray:
+        value = self._get(key)
+        if not isinstance(value, list) or not value or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
+        ):
+            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of finite numbers")
+        if length is not None and len(value) != length:
+            raise ConfigError(f"{self.source}: parameter '{key}' must have {length} values, got {len(value)}")
+        array = np.asarray(value, dtype=float)
+        if non_negative and (array < 0).any():
+            raise ConfigError(f"{self.source}: parameter '{key}' must not be negative")
+        return array
+
+    def text(self, key: str, default: str) -> str:
+        value = self._get(key, default)
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
+        return value
+
+
+def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    d, v = np.meshgrid(deformation, velocity, indexing="ij")
+    return np.stack([d.ravel(), v.ravel()], axis=1)
+
+
+def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>") -> Config:
+    """Build a Config from flat dotted ROS parameters (as the node receives them)."""
+    read = _Reader(flat, source)
+    rig = Rig(
+        mass=read.number("rig.mass", positive=True),
+        eccentricity=read.number("rig.eccentricity", non_negative=True),
+        speed=read.number("rig.speed"),
+        radial_clearance=read.number("rig.radial_clearance", positive=True),
+        axial_clearance=read.number("rig.axial_clearance", positive=True),
+        gravity=read.number("rig.gravity", 9.80665, non_negative=True),
+    )
+    nominal = Nominal(*(read.number(f"contact.{name}", non_negative=True) for name in Nominal._fields))
+    kernel = Kernel(
+        T_R=_grid(read.numbers("kernel.radial_deformation_centres"), read.numbers("kernel.radial_velocity_centres")),
+        T_Z=_grid(read.numbers("kernel.axial_deformation_centres"), read.numbers("kernel.axial_velocity_centres")),
+        width=read.number("kernel.width", positive=True),
+        deformation_scale=read.number("kernel.deformation_scale", positive=True),
+        velocity_scale=read.number("kernel.velocity_scale", positive=True),
+    )
+    measurement_sigma = read.number("filter.measurement_noise", positive=True)
+    noise = FilterNoise(
+        process=read.numbers("filter.process_noise", 7, non_negative=True),
+        measurement=np.full(3, measurement_sigma**2),
+        initial=read.numbers("filter.initial_covariance", 7, non_negative=True),
+    )
+    config = Config(
+        rig=rig,
+        nominal=nominal,
+        kernel=kernel,
+        noise=noise,
+        sample_period=read.number("sensor.sample_period", positive=True),
+        noise_rms=read.number("sensor.noise_rms", non_negative=True),
+        quantisation=read.number("sensor.quantisation", 0.0, non_negative=True),
+        drop=DropDetection(
+            threshold=read.number("drop_detection.threshold", 20e-6, positive=True),
+            levitated_window=read.number("drop_detection.levitated_window", 0.005, positive=True),
+        ),
+        regularisation=read.number("training.regularisation", 1e-3, non_negative=True),
+        topics=Topics(**{name: read.text(f"topics.{name}", default) for name, default in Topics().__dict__.items()}),
+        simulator={k.removeprefix("simulator."): v for k, v in flat.items() if k.startswith("simulator.")},
+        source=source,
+        parameters=dict(flat),
+    )
+    read.used.update(k for k in flat if k.startswith("simulator."))
+    unknown = sorted(set(flat) - read.used)
+    if unknown:
+        raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}")
+    return config

@@ -1,0 +1,1 @@
+"""ROS 2 adapters: the live node and the bag replayer."""
