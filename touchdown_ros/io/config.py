@@ -148,7 +148,10 @@ class _Reader:
     def number(self, key: str, default: Any = ..., positive: bool = False, non_negative: bool = False) -> float:
         value = self._get(key, default)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}")
+            hint = ""
+            if isinstance(value, str) and _looks_numeric(value):
+                hint = " (YAML reads an exponent without sign as text: write 1.0e+8, not 1.0e8)"
+            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}{hint}")
         if positive and value <= 0:
             raise ConfigError(f"{self.source}: parameter '{key}' must be > 0, got {value!r}")
         if non_negative and value < 0:
@@ -173,6 +176,14 @@ class _Reader:
         if not isinstance(value, str) or not value:
             raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
         return value
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:

@@ -1,0 +1,106 @@
+"""The paper's touchdown model: contact forces (eq. 5-8), phi (eq. 12) and the RK4 step f (eq. 15).
+
+One deliberate sign choice: eq. 6c prints F_zR = mu sign(zdot) F_nR, which with
+eq. 4c (zddot = F_z / m - g) would push the rotor along its axial velocity. Friction
+opposes sliding, so here F_zR = -mu sign(zdot) F_nR.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
+from touchdown_ros.core.types import THETA, XDOT, YDOT, ZDOT, ContactForces, Model
+
+
+def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
+    """r, cos(alpha), sin(alpha) with alpha = atan2(y, x) (eq. 4e); alpha = 0 at r = 0.
+
+    The double `where` keeps gradients finite at the centre, where sqrt is not differentiable.
+    """
+    r2 = x * x + y * y
+    at_centre = r2 == 0.0
+    r = jnp.sqrt(jnp.where(at_centre, 1.0, r2))
+    cos_a = jnp.where(at_centre, 1.0, x / r)
+    sin_a = jnp.where(at_centre, 0.0, y / r)
+    return jnp.where(at_centre, 0.0, r), cos_a, sin_a
+
+
+def contact_forces(model: Model, xi: Array) -> ContactForces:
+    """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
+    rig = model.rig
+    x, y, z, _, xdot, ydot, zdot = xi
+    r, cos_a, sin_a = polar(x, y)
+    rdot = cos_a * xdot + sin_a * ydot  # eq. 13e
+
+    radial_deformation = r - rig.radial_clearance
+    axial_deformation = -(z + rig.axial_clearance)
+    radial_contact = radial_deformation > 0.0  # eq. 5 criterion r <= r0 is "no contact"
+    axial_contact = axial_deformation > 0.0  # eq. 7 criterion z >= -z0 is "no contact"
+
+    k_R, c_R, mu = radial_parameters(model.kernel, model.nominal, model.coeffs, radial_deformation, rdot)
+    k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, z + rig.axial_clearance, zdot)
+
+    F_nR = jnp.where(radial_contact, k_R * radial_deformation + c_R * rdot, 0.0)  # eq. 6a
+    F_tR = mu * F_nR  # eq. 6b
+    F_zR = -mu * jnp.sign(zdot) * F_nR  # eq. 6c, friction opposing the axial sliding
+    F_zZ = jnp.where(axial_contact, -k_Z * (z + rig.axial_clearance) - c_Z * zdot, 0.0)  # eq. 8c
+    F_tZ = k_ZR * F_zZ  # eq. 8b (F_nZ = 0, eq. 8a)
+
+    F_n = F_nR
+    F_t = F_tR + F_tZ
+    F_z = F_zR + F_zZ
+    return ContactForces(
+        F_n=F_n,
+        F_t=F_t,
+        F_z=F_z,
+        F_x=-F_n * cos_a + F_t * sin_a,
+        F_y=-F_n * sin_a - F_t * cos_a,
+        radial_contact=radial_contact,
+        axial_contact=axial_contact,
+    )
+
+
+def phi(model: Model, xi: Array) -> Array:
+    """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]."""
+    rig = model.rig
+    forces = contact_forces(model, xi)
+    unbalance = rig.eccentricity * rig.speed**2
+    theta = xi[THETA]
+    return jnp.stack(
+        [
+            xi[XDOT],
+            xi[YDOT],
+            xi[ZDOT],
+            jnp.asarray(rig.speed, dtype=xi.dtype),
+            forces.F_x / rig.mass + unbalance * jnp.cos(theta),
+            forces.F_y / rig.mass + unbalance * jnp.sin(theta),
+            forces.F_z / rig.mass - rig.gravity,
+        ]
+    )
+
+
+def rk4_step(model: Model, xi: Array, h: float) -> Array:
+    """f of eq. 15: one classical Runge-Kutta step of length h (s)."""
+    k1 = h * phi(model, xi)
+    k2 = h * phi(model, xi + 0.5 * k1)
+    k3 = h * phi(model, xi + 0.5 * k2)
+    k4 = h * phi(model, xi + k3)
+    return xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+
+
+def transition_jacobian(model: Model, xi: Array, h: float) -> Array:
+    """Phi_k = df/dxi at xi (eq. 16), exact by forward-mode automatic differentiation."""
+    return jax.jacfwd(rk4_step, argnums=1)(model, xi, h)
+
+
+def step_with_jacobian(model: Model, xi: Array, h: float) -> tuple[Array, Array]:
+    """f(xi) and Phi_k from one forward-mode pass."""
+
+    def f(state: Array) -> tuple[Array, Array]:
+        value = rk4_step(model, state, h)
+        return value, value
+
+    Phi, value = jax.jacfwd(f, has_aux=True)(xi)
+    return value, Phi

@@ -1,0 +1,95 @@
+"""Extended Kalman filter (eq. 17) and Rauch-Tung-Striebel smoother, as pure functions.
+
+Convention: the carried belief is the prior of the current sample; a step updates it
+with the sample's measurement (eq. 17b-c, e-f) and predicts the next prior (eq. 17a, d)
+with Phi_k from automatic differentiation of f. A sample with any non-finite value is
+not used: the step only predicts. The covariance update uses the Joseph form, equal to
+eq. 17f in exact arithmetic and symmetric positive definite in floating point.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from touchdown_ros.core.dynamics import step_with_jacobian
+from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
+
+#: Observation matrix H of eq. 14b: the sensors measure x, y, z.
+H = jnp.eye(OUTPUT_SIZE, STATE_SIZE)
+
+
+class Belief(NamedTuple):
+    """Gaussian belief over the state: mean (7,) and covariance (7, 7)."""
+
+    mean: Array
+    cov: Array
+
+
+class StepOutput(NamedTuple):
+    """What one EKF step returns for its sample."""
+
+    prior: Belief  # xi_{k,-}, P_{k,-}
+    filtered: Belief  # xi_k, P_k
+    innovation: Array  # eta_k - H xi_{k,-}, m (NaN when the sample was not used)
+    innovation_cov: Array  # H P_{k,-} H^T + R
+    Phi: Array  # df/dxi at xi_k, maps this sample to the next
+    used: Array  # bool, measurement used
+
+
+def update(belief: Belief, eta: Array, R: Array) -> tuple[Belief, Array, Array, Array]:
+    """Measurement update (eq. 17b, c, e, f); skipped when eta is not finite."""
+    used = jnp.all(jnp.isfinite(eta))
+    predicted_output = H @ belief.mean
+    innovation = jnp.where(used, eta, predicted_output) - predicted_output
+    S = H @ belief.cov @ H.T + R
+    K = jnp.linalg.solve(S, H @ belief.cov).T  # P H^T S^-1, S and P symmetric
+    I_KH = jnp.eye(STATE_SIZE) - K @ H
+    cov = I_KH @ belief.cov @ I_KH.T + K @ R @ K.T
+    filtered = Belief(belief.mean + K @ innovation, 0.5 * (cov + cov.T))
+    filtered = jax.tree.map(lambda new, old: jnp.where(used, new, old), filtered, belief)
+    return filtered, jnp.where(used, innovation, jnp.nan), S, used
+
+
+def predict(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array]:
+    """Time update (eq. 17a, d): xi_{k+1,-} = f(xi_k), P_{k+1,-} = Phi P Phi^T + Q."""
+    mean, Phi = step_with_jacobian(model, belief.mean, h)
+    return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi
+
+
+def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
+    """One sample: update the prior with eta (3,), m, then predict the next prior."""
+    filtered, innovation, S, used = update(prior, eta, jnp.diag(noise.measurement))
+    next_prior, Phi = predict(model, filtered, jnp.diag(noise.process), h)
+    return next_prior, StepOutput(prior, filtered, innovation, S, Phi, used)
+
+
+def ekf(model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array) -> StepOutput:
+    """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N."""
+
+    def body(prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
+        return ekf_step(model, noise, h, prior, eta)
+
+    _, outputs = jax.lax.scan(body, initial, etas)
+    return outputs
+
+
+def rts_smoother(outputs: StepOutput) -> Belief:
+    """Fixed-interval Rauch-Tung-Striebel smoother over a filtered record."""
+    filtered, Phi = outputs.filtered, outputs.Phi
+    next_priors = jax.tree.map(lambda a: a[1:], outputs.prior)
+
+    def body(later: Belief, inputs) -> tuple[Belief, Belief]:
+        now, Phi_k, next_prior = inputs
+        gain = jnp.linalg.solve(next_prior.cov, Phi_k @ now.cov).T  # P_k Phi^T P_{k+1,-}^-1
+        mean = now.mean + gain @ (later.mean - next_prior.mean)
+        cov = now.cov + gain @ (later.cov - next_prior.cov) @ gain.T
+        smoothed = Belief(mean, 0.5 * (cov + cov.T))
+        return smoothed, smoothed
+
+    last = jax.tree.map(lambda a: a[-1], filtered)
+    earlier = (jax.tree.map(lambda a: a[:-1], filtered), Phi[:-1], next_priors)
+    _, smoothed = jax.lax.scan(body, last, earlier, reverse=True)
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), smoothed, last)

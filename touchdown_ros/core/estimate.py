@@ -1,0 +1,172 @@
+"""Offline estimation of one drop record: grid, drop detection, EKF, smoother, derived signals."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from touchdown_ros.core.dynamics import contact_forces, phi
+from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
+from touchdown_ros.core.types import FilterNoise, Model
+
+
+class SampleGrid(NamedTuple):
+    """Samples placed on the sensor's regular time grid; missing samples are NaN rows."""
+
+    stamps_ns: np.ndarray  # (N,) int64
+    etas: np.ndarray  # (N, 3) m, NaN where no sample arrived
+    missing: int  # number of grid points without a sample
+
+
+class SignalSet(NamedTuple):
+    """Per-sample signals derived from one state trajectory (filtered or smoothed)."""
+
+    state: Array  # (N, 7)
+    state_cov: Array  # (N, 7, 7)
+    acceleration: Array  # (N, 3) m/s^2
+    acceleration_cov: Array  # (N, 3, 3)
+    F_n: Array  # (N,) N
+    F_t: Array
+    F_z: Array
+    force_xyz: Array  # (N, 3) contact force on the rotor in sensor axes, N
+    radial_contact: Array  # (N,) bool
+    axial_contact: Array
+
+
+class Estimate(NamedTuple):
+    """Everything estimated for one record, from the drop onset on."""
+
+    stamps_ns: np.ndarray  # (N,) int64
+    measured: np.ndarray  # (N, 3) m, NaN where missing
+    filtered: SignalSet
+    smoothed: SignalSet
+    predicted_output: Array  # (N, 3) H xi_{k,-}: one-step prediction, m
+    innovation: Array  # (N, 3) m
+    innovation_cov: Array  # (N, 3, 3)
+    nis: Array  # (N,) normalised innovation squared
+    onset_index: int  # index of the drop onset in the input grid
+    missing: int
+
+
+class GridError(ValueError):
+    """Sample stamps do not fit the configured sample period."""
+
+
+def to_grid(stamps_ns: np.ndarray, etas: np.ndarray, sample_period: float, tolerance: float = 0.25) -> SampleGrid:
+    """Place samples on the regular grid of sample_period (s); gaps become NaN rows.
+
+    Refuses stamps that are off the grid by more than tolerance of a period, and
+    duplicate or decreasing stamps.
+    """
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    period_ns = sample_period * 1e9
+    offsets = (stamps_ns - stamps_ns[0]) / period_ns
+    index = np.rint(offsets).astype(np.int64)
+    if np.any(np.diff(index) <= 0):
+        bad = int(np.argmax(np.diff(index) <= 0)) + 1
+        raise GridError(f"sample {bad}: stamp not after the previous one on the {sample_period} s grid")
+    jitter = np.abs(offsets - index)
+    if np.any(jitter > tolerance):
+        bad = int(np.argmax(jitter > tolerance))
+        raise GridError(
+            f"sample {bad}: stamp is {jitter[bad]:.2f} periods off the {sample_period} s grid "
+            "(is sensor.sample_period right?)"
+        )
+    grid = np.full((index[-1] + 1, 3), np.nan)
+    grid[index] = etas
+    grid_stamps = stamps_ns[0] + np.rint(np.arange(index[-1] + 1) * period_ns).astype(np.int64)
+    return SampleGrid(grid_stamps, grid, int(index[-1] + 1 - len(index)))
+
+
+def detect_drop(z: np.ndarray, sample_period: float, threshold: float, window: float, gravity: float) -> int | None:
+    """Index of the drop onset: z leaves its levitated mean by threshold (m); None if it never does.
+
+    The crossing is moved back by the free-fall time to fall threshold, sqrt(2 threshold / g).
+    """
+    finite = np.isfinite(z)
+    window_samples = max(1, int(round(window / sample_period)))
+    levitated = z[:window_samples][finite[:window_samples]]
+    reference = float(np.mean(levitated)) if levitated.size else 0.0
+    below = np.flatnonzero(finite & (z < reference - threshold))
+    if below.size == 0:
+        return None
+    fall_samples = int(round(np.sqrt(2.0 * threshold / gravity) / sample_period))
+    return max(0, int(below[0]) - fall_samples)
+
+
+def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) -> Belief:
+    """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0."""
+    position = np.nanmean(etas[:samples], axis=0)
+    mean = np.concatenate([position, [0.0, 0.0, 0.0, 0.0]])
+    return Belief(jnp.asarray(mean), jnp.diag(jnp.asarray(initial_cov)))
+
+
+def signals(model: Model, states: Belief) -> SignalSet:
+    """Accelerations (phi at the state) with linearised covariance, and contact forces."""
+
+    def one(mean: Array, cov: Array):
+        acceleration = phi(model, mean)[4:]
+        J = jax.jacfwd(lambda s: phi(model, s)[4:])(mean)
+        forces = contact_forces(model, mean)
+        return acceleration, J @ cov @ J.T, forces
+
+    acceleration, acceleration_cov, forces = jax.vmap(one)(states.mean, states.cov)
+    return SignalSet(
+        state=states.mean,
+        state_cov=states.cov,
+        acceleration=acceleration,
+        acceleration_cov=acceleration_cov,
+        F_n=forces.F_n,
+        F_t=forces.F_t,
+        F_z=forces.F_z,
+        force_xyz=jnp.stack([forces.F_x, forces.F_y, forces.F_z], axis=-1),
+        radial_contact=forces.radial_contact,
+        axial_contact=forces.axial_contact,
+    )
+
+
+@jax.jit
+def _run(model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array):
+    outputs: StepOutput = ekf(model, noise, h, initial, etas)
+    smoothed = rts_smoother(outputs)
+    nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
+    return (
+        signals(model, outputs.filtered),
+        signals(model, smoothed),
+        outputs.prior.mean[:, :3],
+        outputs.innovation,
+        outputs.innovation_cov,
+        nis,
+    )
+
+
+def estimate_record(
+    model: Model,
+    noise: FilterNoise,
+    sample_period: float,
+    stamps_ns: np.ndarray,
+    etas: np.ndarray,
+    onset_index: int = 0,
+    missing: int = 0,
+) -> Estimate:
+    """Filter and smooth samples on a regular grid from onset_index on."""
+    stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
+    initial = initial_belief(etas, np.asarray(noise.initial))
+    filtered, smoothed, predicted, innovation, innovation_cov, nis = _run(
+        model, noise, sample_period, initial, jnp.asarray(etas)
+    )
+    return Estimate(
+        stamps_ns=stamps_ns,
+        measured=etas,
+        filtered=filtered,
+        smoothed=smoothed,
+        predicted_output=predicted,
+        innovation=innovation,
+        innovation_cov=innovation_cov,
+        nis=nis,
+        onset_index=onset_index,
+        missing=missing,
+    )
