@@ -1,0 +1,308 @@
+"""Core model and filter against hand computations and independent implementations."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from filterpy.kalman import ExtendedKalmanFilter
+
+from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, transition_jacobian
+from touchdown_ros.core.ekf import Belief, ekf, rts_smoother
+from touchdown_ros.core.estimate import detect_drop, to_grid, GridError
+from touchdown_ros.core.pkbkr import rkhs_distance
+from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
+from touchdown_ros.io.config import load_config
+
+CONFIG = load_config()
+RIG = Rig(mass=200.0, eccentricity=1e-5, speed=500.0, radial_clearance=2e-4, axial_clearance=3e-4, gravity=9.81)
+NOMINAL = Nominal(k_R=1e8, c_R=2e4, mu=0.12, k_Z=3e8, c_Z=5e4, k_ZR=0.07)
+
+
+def make_model(coeffs=None, rig=RIG, nominal=NOMINAL):
+    kernel = CONFIG.kernel
+    return type(CONFIG.model())(rig, nominal, kernel, coeffs or Coefficients.zeros(kernel))
+
+
+def random_coeffs(seed=0, scale=0.3):
+    rng = np.random.default_rng(seed)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    return Coefficients(
+        alpha_R=scale * rng.standard_normal(zeros.alpha_R.shape),
+        alpha_Z=scale * rng.standard_normal(zeros.alpha_Z.shape),
+    )
+
+
+def hand_forces(xi, rig=RIG, p=NOMINAL):
+    """Eq. 5-8 written out with plain math, constant parameters."""
+    x, y, z, _, xd, yd, zd = (float(v) for v in xi)
+    r = math.hypot(x, y)
+    a = math.atan2(y, x)
+    rdot = math.cos(a) * xd + math.sin(a) * yd
+    F_nR = p.k_R * (r - rig.radial_clearance) + p.c_R * rdot if r > rig.radial_clearance else 0.0
+    F_tR = p.mu * F_nR
+    F_zR = -p.mu * math.copysign(1.0, zd) * F_nR if zd != 0 else 0.0
+    F_zZ = -p.k_Z * (z + rig.axial_clearance) - p.c_Z * zd if z < -rig.axial_clearance else 0.0
+    F_tZ = p.k_ZR * F_zZ
+    F_n, F_t, F_z = F_nR, F_tR + F_tZ, F_zR + F_zZ
+    F_x = -F_n * math.cos(a) + F_t * math.sin(a)
+    F_y = -F_n * math.sin(a) - F_t * math.cos(a)
+    return F_n, F_t, F_z, F_x, F_y
+
+
+CASES = {
+    "free": [1e-4, -0.5e-4, -1e-4, 0.3, 0.01, -0.02, -0.05],
+    "radial": [1.5e-4, 1.6e-4, -1e-4, 1.1, 0.03, -0.01, 0.02],
+    "axial": [0.5e-4, 0.2e-4, -3.2e-4, 2.0, 0.01, 0.02, -0.06],
+    "both": [-2.0e-4, 0.9e-4, -3.1e-4, 4.0, -0.04, 0.03, 0.01],
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_forces_equal_hand_computed_eq5_8(case):
+    xi = jnp.array(CASES[case])
+    forces = contact_forces(make_model(), xi)
+    expected = hand_forces(CASES[case])
+    got = (forces.F_n, forces.F_t, forces.F_z, forces.F_x, forces.F_y)
+    np.testing.assert_allclose(np.array(got, dtype=float), expected, rtol=1e-12, atol=1e-9)
+    assert bool(forces.radial_contact) == (case in ("radial", "both"))
+    assert bool(forces.axial_contact) == (case in ("axial", "both"))
+    if case == "free":
+        assert np.all(np.array(got, dtype=float) == 0.0)
+
+
+def test_phi_is_eq12():
+    xi = np.array(CASES["both"])
+    F_n, F_t, F_z, F_x, F_y = hand_forces(xi)
+    unbalance = RIG.eccentricity * RIG.speed**2
+    expected = [
+        xi[4],
+        xi[5],
+        xi[6],
+        RIG.speed,
+        F_x / RIG.mass + unbalance * math.cos(xi[3]),
+        F_y / RIG.mass + unbalance * math.sin(xi[3]),
+        F_z / RIG.mass - RIG.gravity,
+    ]
+    np.testing.assert_allclose(np.asarray(phi(make_model(), jnp.asarray(xi))), expected, rtol=1e-12)
+
+
+def test_pkbkr_with_zero_alpha_is_the_constant_model_and_alpha_changes_it():
+    xi = jnp.array(CASES["both"])
+    constant = contact_forces(make_model(), xi)
+    zero = contact_forces(make_model(Coefficients.zeros(CONFIG.kernel)), xi)
+    learned = contact_forces(make_model(random_coeffs()), xi)
+    assert float(zero.F_z) == float(constant.F_z) and float(zero.F_n) == float(constant.F_n)
+    assert abs(float(learned.F_z) - float(constant.F_z)) > 1.0
+    assert abs(float(learned.F_n) - float(constant.F_n)) > 1.0
+    assert float(rkhs_distance(CONFIG.kernel, Coefficients.zeros(CONFIG.kernel))) == 0.0
+    assert float(rkhs_distance(CONFIG.kernel, random_coeffs())) > 0.0
+
+
+def test_learned_parameters_at_one_state_match_a_hand_kernel():
+    kernel = CONFIG.kernel
+    coeffs = Coefficients.zeros(kernel)
+    centre = 7  # one radial centre carries alpha_1 = 0.5
+    coeffs = coeffs._replace(alpha_R=coeffs.alpha_R.at[0, centre].set(0.5))
+    xi = np.array(CASES["radial"])
+    r = math.hypot(xi[0], xi[1])
+    rdot = (xi[0] * xi[3 + 1] + xi[1] * xi[5]) / r
+    s = np.array([(r - RIG.radial_clearance) / kernel.deformation_scale, rdot / kernel.velocity_scale])
+    q = math.exp(-np.sum((s - np.asarray(kernel.T_R[centre])) ** 2) / (2 * kernel.width**2))
+    k_R = NOMINAL.k_R * (1 + 0.5 * q)
+    expected_F_n = k_R * (r - RIG.radial_clearance) + NOMINAL.c_R * rdot
+    got = contact_forces(make_model(coeffs), jnp.asarray(xi)).F_n
+    np.testing.assert_allclose(float(got), expected_F_n, rtol=1e-12)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_ad_jacobian_matches_central_differences(case):
+    model = make_model(random_coeffs(1))
+    xi = np.array(CASES[case])
+    h = 1e-4
+    J = np.asarray(transition_jacobian(model, jnp.asarray(xi), h))
+    scales = np.array([1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1e-6])
+    J_fd = np.empty((7, 7))
+    for j in range(7):
+        step = np.zeros(7)
+        step[j] = scales[j]
+        J_fd[:, j] = (
+            np.asarray(rk4_step(model, jnp.asarray(xi + step), h)) - np.asarray(rk4_step(model, jnp.asarray(xi - step), h))
+        ) / (2 * scales[j])
+    np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
+    assert not np.allclose(J, np.eye(7))
+
+
+def test_rk4_converges_with_fourth_order():
+    model = make_model(random_coeffs(2, scale=0.1))
+    xi0 = jnp.array([0.3e-4, 0.1e-4, -3.08e-4, 0.0, 0.0, 0.0, -0.005])  # stays in axial contact, no switching
+    T = 2e-3
+
+    def integrate(n):
+        step = jax.jit(lambda s: rk4_step(model, s, T / n))
+        s = xi0
+        for _ in range(n):
+            s = step(s)
+        return np.asarray(s)
+
+    reference = integrate(4096)
+    assert reference[2] < -RIG.axial_clearance
+    errors = [np.abs(integrate(n) - reference)[6] for n in (32, 64, 128)]
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all((orders > 3.7) & (orders < 4.3)), orders
+
+
+def _always_in_axial_contact_model():
+    """A linear special case: resting on the axial bearing, no radial contact, no unbalance, no friction."""
+    rig = RIG._replace(eccentricity=0.0)
+    nominal = NOMINAL._replace(k_ZR=0.0, mu=0.0, k_Z=3e7)  # soft: 65 um static deflection
+    return make_model(rig=rig, nominal=nominal)
+
+
+def test_ekf_equals_independent_linear_kalman_filter():
+    model = _always_in_axial_contact_model()
+    h, m = 1e-4, RIG.mass
+    # Continuous linear dynamics: zddot = -(k_Z (z + z0) + c_Z zdot) / m - g; x, y free.
+    A = np.zeros((7, 7))
+    A[0, 4] = A[1, 5] = A[2, 6] = 1.0
+    k_Z, c_Z = model.nominal.k_Z, model.nominal.c_Z
+    A[6, 2], A[6, 6] = -k_Z / m, -c_Z / m
+    b = np.zeros(7)
+    b[3] = RIG.speed
+    b[6] = -k_Z * RIG.axial_clearance / m - RIG.gravity
+    hA = h * A
+    Ad = np.eye(7) + hA + hA @ hA / 2 + hA @ hA @ hA / 6 + hA @ hA @ hA @ hA / 24  # RK4 of a linear system
+    bd = (h * np.eye(7) + h * hA / 2 + h * hA @ hA / 6 + h * hA @ hA @ hA / 24) @ b
+    Hm = np.eye(3, 7)
+    Q = np.diag([1e-14, 1e-14, 1e-14, 1e-8, 1e-8, 1e-8, 1e-8])
+    R = np.eye(3) * 4e-12
+    rng = np.random.default_rng(3)
+    n = 300
+    truth = np.zeros((n, 7))
+    truth[0] = [1e-5, -2e-5, -3.5e-4, 0, 0.001, 0, -0.01]
+    for k in range(1, n):
+        truth[k] = Ad @ truth[k - 1] + bd
+    etas = truth[:, :3] + 2e-6 * rng.standard_normal((n, 3))
+    assert truth[:, 2].max() < -RIG.axial_clearance - 20e-6, "the linear case must stay in axial contact"
+    x, P = np.array([0, 0, -3.5e-4, 0, 0, 0, 0.0]), np.diag([1e-10, 1e-10, 1e-10, 1.0, 1e-4, 1e-4, 1e-4])
+    means = []
+    for eta in etas:
+        S = Hm @ P @ Hm.T + R
+        K = P @ Hm.T @ np.linalg.inv(S)
+        x = x + K @ (eta - Hm @ x)
+        P = (np.eye(7) - K @ Hm) @ P
+        means.append(x)
+        x, P = Ad @ x + bd, Ad @ P @ Ad.T + Q
+    noise = FilterNoise(np.diag(Q), np.diag(R), np.array([1e-10, 1e-10, 1e-10, 1.0, 1e-4, 1e-4, 1e-4]))
+    out = ekf(model, noise, h, Belief(jnp.array([0, 0, -3.5e-4, 0, 0, 0, 0.0]), jnp.diag(noise.initial)), jnp.asarray(etas))
+    means = np.array(means)
+    np.testing.assert_allclose(np.asarray(out.filtered.mean)[:, :3], means[:, :3], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(out.filtered.mean)[:, 4:], means[:, 4:], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.filtered.cov)[-1], _last_filtered_cov(etas, Ad, bd, Q, R), rtol=1e-8)
+
+
+def _last_filtered_cov(etas, Ad, bd, Q, R):
+    P = np.diag([1e-10, 1e-10, 1e-10, 1.0, 1e-4, 1e-4, 1e-4])
+    Hm = np.eye(3, 7)
+    for _ in etas[:-1]:
+        K = P @ Hm.T @ np.linalg.inv(Hm @ P @ Hm.T + R)
+        P = Ad @ ((np.eye(7) - K @ Hm) @ P) @ Ad.T + Q
+    K = P @ Hm.T @ np.linalg.inv(Hm @ P @ Hm.T + R)
+    return (np.eye(7) - K @ Hm) @ P
+
+
+def _touchdown_data(model, n=600, seed=4):
+    """A trajectory of the model itself with contact switching, plus sensor noise."""
+    step = jax.jit(lambda s: rk4_step(model, s, 1e-5))
+    xi = jnp.array([2e-6, -1e-6, 0.0, 0.0, 0.0, 0.0, 0.0])
+    states = []
+    for _ in range(n):
+        for _ in range(10):
+            xi = step(xi)
+        states.append(np.asarray(xi))
+    states = np.array(states)
+    etas = states[:, :3] + 2e-6 * np.random.default_rng(seed).standard_normal((n, 3))
+    return states, etas
+
+
+def test_ekf_agrees_with_filterpy_on_touchdown_model():
+    model = make_model(random_coeffs(5, scale=0.2))
+    noise = FilterNoise(CONFIG.noise.process, CONFIG.noise.measurement, CONFIG.noise.initial)
+    h = 1e-4
+    states, etas = _touchdown_data(model)
+    assert (states[:, 2] < -RIG.axial_clearance).any(), "data must include axial contact"
+    x0 = np.concatenate([etas[0], np.zeros(4)])
+    out = ekf(model, noise, h, Belief(jnp.asarray(x0), jnp.diag(noise.initial)), jnp.asarray(etas))
+
+    f = jax.jit(lambda s: rk4_step(model, s, h))
+    F = jax.jit(lambda s: transition_jacobian(model, s, h))
+
+    class TouchdownEKF(ExtendedKalmanFilter):
+        def predict_x(self, u=0):
+            self.x = np.asarray(f(jnp.asarray(self.x[:, 0])))[:, None]
+
+    peer = TouchdownEKF(dim_x=7, dim_z=3)
+    peer.x = x0[:, None].copy()
+    peer.P = np.diag(np.asarray(noise.initial))
+    peer.Q = np.diag(np.asarray(noise.process))
+    peer.R = np.diag(np.asarray(noise.measurement))
+    Hm = np.eye(3, 7)
+    means = []
+    for eta in etas:
+        peer.update(eta[:, None], lambda x: Hm, lambda x: Hm @ x)
+        means.append(peer.x[:, 0].copy())
+        peer.F = np.asarray(F(jnp.asarray(peer.x[:, 0])))
+        peer.predict()
+    means = np.array(means)
+    ours = np.asarray(out.filtered.mean)
+    scale = np.abs(means).max(axis=0) + 1e-12
+    assert np.max(np.abs(ours - means) / scale) < 1e-9
+
+
+def test_nan_sample_is_predicted_through_not_used():
+    model = make_model()
+    states, etas = _touchdown_data(model, n=100)
+    etas_gap = etas.copy()
+    etas_gap[40] = np.nan
+    noise = CONFIG.noise
+    init = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(4)])), jnp.diag(noise.initial))
+    out = ekf(model, noise, 1e-4, init, jnp.asarray(etas_gap))
+    assert not bool(out.used[40]) and bool(out.used[39])
+    np.testing.assert_array_equal(np.asarray(out.filtered.mean[40]), np.asarray(out.prior.mean[40]))
+    assert np.all(np.isfinite(np.asarray(out.filtered.mean)))
+
+
+def test_smoother_beats_filter_on_velocity():
+    model = make_model()
+    states, etas = _touchdown_data(model, n=600)
+    noise = CONFIG.noise
+    init = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(4)])), jnp.diag(noise.initial))
+    out = ekf(model, noise, 1e-4, init, jnp.asarray(etas))
+    smoothed = rts_smoother(out)
+    radial = slice(4, 6)
+    err_f = np.sqrt(np.mean((np.asarray(out.filtered.mean)[:, radial] - states[:, radial]) ** 2))
+    err_s = np.sqrt(np.mean((np.asarray(smoothed.mean)[:, radial] - states[:, radial]) ** 2))
+    assert err_s < err_f
+    np.testing.assert_array_equal(np.asarray(smoothed.mean[-1]), np.asarray(out.filtered.mean[-1]))
+
+
+def test_grid_fills_gaps_and_refuses_off_grid_stamps():
+    stamps = np.array([0, 100_000, 200_000, 500_000], dtype=np.int64)
+    grid = to_grid(stamps, np.ones((4, 3)), 1e-4)
+    assert grid.missing == 2 and grid.etas.shape == (6, 3)
+    assert np.isnan(grid.etas[3]).all() and np.isfinite(grid.etas[5]).all()
+    with pytest.raises(GridError, match="off the"):
+        to_grid(np.array([0, 150_000], dtype=np.int64), np.ones((2, 3)), 1e-4)
+    with pytest.raises(GridError, match="not after"):
+        to_grid(np.array([0, 100_000, 100_000], dtype=np.int64), np.ones((3, 3)), 1e-4)
+
+
+def test_drop_detection_finds_onset():
+    h, g = 1e-4, 9.81
+    t = np.arange(2000) * h
+    onset = 500
+    z = np.where(np.arange(2000) < onset, 0.0, -0.5 * g * (t - t[onset]) ** 2)
+    z = z + 1e-6 * np.random.default_rng(0).standard_normal(2000)
+    found = detect_drop(z, h, threshold=20e-6, window=0.005, gravity=g)
+    assert abs(found - onset) <= 3
+    assert detect_drop(np.zeros(100), h, 20e-6, 0.005, g) is None
