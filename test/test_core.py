@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, transition_jacobian
+from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, step_with_jacobian, transition_jacobian
 from touchdown_ros.core.ekf import Belief, ekf, rts_smoother
 from touchdown_ros.core.estimate import detect_drop, to_grid, GridError
 from touchdown_ros.core.pkbkr import rkhs_distance
@@ -131,6 +131,15 @@ def test_ad_jacobian_matches_central_differences(case):
         ) / (2 * scales[j])
     np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
     assert not np.allclose(J, np.eye(7))
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_eq16_chain_rule_equals_jacfwd_of_f(case):
+    model = make_model(random_coeffs(6))
+    xi = jnp.array(CASES[case])
+    value, Phi = step_with_jacobian(model, xi, 1e-4)
+    np.testing.assert_array_equal(np.asarray(value), np.asarray(rk4_step(model, xi, 1e-4)))
+    np.testing.assert_allclose(np.asarray(Phi), np.asarray(transition_jacobian(model, xi, 1e-4)), rtol=1e-12, atol=1e-15)
 
 
 def test_rk4_converges_with_fourth_order():

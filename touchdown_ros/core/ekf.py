@@ -2,9 +2,8 @@
 
 Convention: the carried belief is the prior of the current sample; a step updates it
 with the sample's measurement (eq. 17b-c, e-f) and predicts the next prior (eq. 17a, d)
-with Phi_k from automatic differentiation of f. A sample with any non-finite value is
-not used: the step only predicts. The covariance update uses the Joseph form, equal to
-eq. 17f in exact arithmetic and symmetric positive definite in floating point.
+with Phi_k from automatic differentiation (eq. 16). A sample with any non-finite value
+is not used: the step only predicts. Covariances are symmetrised after each update.
 """
 from __future__ import annotations
 
@@ -17,8 +16,6 @@ from jax import Array
 from touchdown_ros.core.dynamics import step_with_jacobian
 from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
 
-#: Observation matrix H of eq. 14b: the sensors measure x, y, z.
-H = jnp.eye(OUTPUT_SIZE, STATE_SIZE)
 
 
 class Belief(NamedTuple):
@@ -39,15 +36,24 @@ class StepOutput(NamedTuple):
     used: Array  # bool, measurement used
 
 
+def _inverse_3x3(A: Array) -> Array:
+    """Closed-form inverse (adjugate over determinant): S is 3 x 3 and this is the hot loop."""
+    adjugate = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
+    return adjugate / jnp.dot(A[0], adjugate[:, 0])
+
+
 def update(belief: Belief, eta: Array, R: Array) -> tuple[Belief, Array, Array, Array]:
-    """Measurement update (eq. 17b, c, e, f); skipped when eta is not finite."""
+    """Measurement update (eq. 17b, c, e, f); skipped when eta is not finite.
+
+    H selects x, y, z, so H P is the first three rows of P.
+    """
     used = jnp.all(jnp.isfinite(eta))
-    predicted_output = H @ belief.mean
+    predicted_output = belief.mean[:OUTPUT_SIZE]
     innovation = jnp.where(used, eta, predicted_output) - predicted_output
-    S = H @ belief.cov @ H.T + R
-    K = jnp.linalg.solve(S, H @ belief.cov).T  # P H^T S^-1, S and P symmetric
-    I_KH = jnp.eye(STATE_SIZE) - K @ H
-    cov = I_KH @ belief.cov @ I_KH.T + K @ R @ K.T
+    HP = belief.cov[:OUTPUT_SIZE]
+    S = HP[:, :OUTPUT_SIZE] + R
+    K = HP.T @ _inverse_3x3(S)  # eq. 17e
+    cov = belief.cov - K @ HP  # eq. 17f
     filtered = Belief(belief.mean + K @ innovation, 0.5 * (cov + cov.T))
     filtered = jax.tree.map(lambda new, old: jnp.where(used, new, old), filtered, belief)
     return filtered, jnp.where(used, innovation, jnp.nan), S, used
