@@ -1,7 +1,7 @@
 """Offline estimation of one drop record: grid, drop detection, EKF, smoother, derived signals."""
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -128,45 +128,46 @@ def signals(model: Model, states: Belief) -> SignalSet:
     )
 
 
-@jax.jit
-def _run(model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array):
-    outputs: StepOutput = ekf(model, noise, h, initial, etas)
-    smoothed = rts_smoother(outputs)
-    nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
-    return (
-        signals(model, outputs.filtered),
-        signals(model, smoothed),
-        outputs.prior.mean[:, :3],
-        outputs.innovation,
-        outputs.innovation_cov,
-        nis,
-    )
+Estimator = Callable[..., Estimate]
 
 
-def estimate_record(
-    model: Model,
-    noise: FilterNoise,
-    sample_period: float,
-    stamps_ns: np.ndarray,
-    etas: np.ndarray,
-    onset_index: int = 0,
-    missing: int = 0,
-) -> Estimate:
-    """Filter and smooth samples on a regular grid from onset_index on."""
-    stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
-    initial = initial_belief(etas, np.asarray(noise.initial))
-    filtered, smoothed, predicted, innovation, innovation_cov, nis = _run(
-        model, noise, sample_period, initial, jnp.asarray(etas)
-    )
-    return Estimate(
-        stamps_ns=stamps_ns,
-        measured=etas,
-        filtered=filtered,
-        smoothed=smoothed,
-        predicted_output=predicted,
-        innovation=innovation,
-        innovation_cov=innovation_cov,
-        nis=nis,
-        onset_index=onset_index,
-        missing=missing,
-    )
+def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Estimator:
+    """Compile the filter + smoother for one model; the returned function estimates many records.
+
+    The model is closed over so its constants fold at compile time (about 1.4x faster
+    than passing it as an argument); compilation happens once per record length.
+    """
+
+    @jax.jit
+    def run(initial: Belief, etas: Array):
+        outputs: StepOutput = ekf(model, noise, sample_period, initial, etas)
+        smoothed = rts_smoother(outputs)
+        nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
+        return (
+            signals(model, outputs.filtered),
+            signals(model, smoothed),
+            outputs.prior.mean[:, :3],
+            outputs.innovation,
+            outputs.innovation_cov,
+            nis,
+        )
+
+    def estimate(stamps_ns: np.ndarray, etas: np.ndarray, onset_index: int = 0, missing: int = 0) -> Estimate:
+        """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on."""
+        stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
+        initial = initial_belief(etas, np.asarray(noise.initial))
+        filtered, smoothed, predicted, innovation, innovation_cov, nis = jax.device_get(run(initial, jnp.asarray(etas)))
+        return Estimate(
+            stamps_ns=stamps_ns,
+            measured=etas,
+            filtered=filtered,
+            smoothed=smoothed,
+            predicted_output=predicted,
+            innovation=innovation,
+            innovation_cov=innovation_cov,
+            nis=nis,
+            onset_index=onset_index,
+            missing=missing,
+        )
+
+    return estimate

@@ -1,0 +1,139 @@
+"""The `touchdown` command: simulate, estimate, demo."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from touchdown_ros import __version__
+from touchdown_ros.io.bags import BagError
+from touchdown_ros.io.config import ConfigError, load_config
+from touchdown_ros.progress import progress
+
+EXIT_USAGE = 2
+EXIT_BAD_INPUT = 3
+
+
+def _add_config(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config", type=Path, default=None, help="rig YAML in ROS 2 parameter-file form (default: the reference rig)"
+    )
+
+
+def _refuse_existing(path: Path, overwrite: bool) -> None:
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from touchdown_ros.offline import write_drop_bag
+    from touchdown_ros.sim.campaign import CAMPAIGN
+    from touchdown_ros.sim.simulator import simulate_drop
+
+    config = load_config(args.config)
+    numbers = [c.number for c in CAMPAIGN] if args.campaign else args.experiment
+    conditions = [c for c in CAMPAIGN if c.number in numbers]
+    missing = sorted(set(numbers) - {c.number for c in conditions})
+    if missing:
+        raise ValueError(f"no experiment numbered {missing} in the campaign (1-{len(CAMPAIGN)})")
+    args.out.mkdir(parents=True, exist_ok=True)
+    targets = [args.out / f"exp_{c.number:02d}" for c in conditions]
+    for target in targets:
+        _refuse_existing(target, args.overwrite)
+    for condition, target in progress(zip(conditions, targets), len(conditions), "simulate"):
+        record = simulate_drop(config, condition, seed=args.seed + condition.number)
+        write_drop_bag(record, config, target, overwrite=args.overwrite)
+    print(f"wrote {len(targets)} bag(s) to {args.out}")
+    return 0
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from touchdown_ros.offline import estimate_bag, estimator_for, write_estimate_bag
+    from touchdown_ros.report import plot_estimate, write_summaries
+
+    config = load_config(args.config)
+    coeffs = None
+    if args.coeffs is not None:
+        from touchdown_ros.io.coefficients import load_coefficients
+
+        coeffs = load_coefficients(args.coeffs, config).coeffs
+    estimator = estimator_for(config, coeffs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
+    for target in targets:
+        _refuse_existing(target, args.overwrite)
+    results = []
+    for bag, target in progress(zip(args.bags, targets), len(args.bags), "estimate"):
+        result = estimate_bag(config, bag, estimator)
+        write_estimate_bag(result, config, target, overwrite=args.overwrite)
+        if not args.no_figures:
+            plot_estimate(result, args.out / "figures" / Path(bag).name)
+        results.append(result)
+    write_summaries(results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model"})
+    print((args.out / "summary.md").read_text(), end="")
+    print(f"estimates, summary.json/.md and figures in {args.out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Simulate the paper's experiment 11, estimate it, write results and figures."""
+    out: Path = args.out
+    bags = out / "bags"
+    sim = argparse.Namespace(
+        config=args.config, out=bags, campaign=False, experiment=[11], seed=args.seed, overwrite=True
+    )
+    cmd_simulate(sim)
+    est = argparse.Namespace(
+        config=args.config, bags=[bags / "exp_11"], coeffs=None, out=out / "estimate", overwrite=True, no_figures=False
+    )
+    cmd_estimate(est)
+    print(f"demo done: open {out / 'estimate' / 'figures' / 'exp_11'} for the figures")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="touchdown", description="AMB rotor touchdown: simulate drop tests, estimate velocity, acceleration, force."
+    )
+    parser.add_argument("--version", action="version", version=f"touchdown_ros {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="simulate drop tests into rosbag2 MCAP bags (with truth topics)")
+    _add_config(p)
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--campaign", action="store_true", help="all 21 experiments of the paper's Table 1")
+    which.add_argument("--experiment", type=int, nargs="+", metavar="N", help="experiment number(s) of Table 1")
+    p.add_argument("--seed", type=int, default=0, help="base random seed (experiment N uses seed + N)")
+    p.add_argument("-o", "--out", type=Path, required=True, help="directory for the bags exp_NN/")
+    p.add_argument("--overwrite", action="store_true", help="replace existing bags")
+    p.set_defaults(run=cmd_simulate)
+
+    p = sub.add_parser("estimate", help="estimate velocity, acceleration and contact force of recorded drops")
+    _add_config(p)
+    p.add_argument("bags", type=Path, nargs="+", metavar="BAG", help="rosbag2 directory or .mcap file")
+    p.add_argument("--coeffs", type=Path, help="trained PKBKR coefficient file (default: the constant model)")
+    p.add_argument("-o", "--out", type=Path, required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output bags")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.set_defaults(run=cmd_estimate)
+
+    p = sub.add_parser("demo", help="simulate a drop, estimate it, write results and figures")
+    _add_config(p)
+    p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(run=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except (ConfigError, BagError, FileExistsError, FileNotFoundError, ValueError) as error:
+        print(f"touchdown {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
