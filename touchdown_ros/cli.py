@@ -8,6 +8,7 @@ from typing import Sequence
 
 from touchdown_ros import __version__
 from touchdown_ros.io.bags import BagError
+from touchdown_ros.io.coefficients import CoefficientFileError
 from touchdown_ros.io.config import ConfigError, load_config
 from touchdown_ros.progress import progress
 
@@ -76,6 +77,64 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from touchdown_ros.train import train
+
+    config = load_config(args.config)
+    if args.out.exists() and not (args.overwrite or args.resume):
+        raise FileExistsError(f"{args.out} exists; pass --overwrite to replace it or --resume to continue")
+    result = train(
+        config,
+        args.bags,
+        args.out,
+        regularisation=args.regularisation,
+        init=args.init,
+        resume=args.resume,
+        max_steps=args.steps,
+        duration=args.duration,
+    )
+    print(
+        f"trained on {len(args.bags)} bag(s) in {result.seconds:.1f} s: loss {result.initial_loss:.6g} -> "
+        f"{result.final_loss:.6g} after {result.steps} steps; wrote {args.out}"
+    )
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from touchdown_ros.evaluate import compare, cross_validate, write_tables
+    from touchdown_ros.io.coefficients import load_coefficients
+    from touchdown_ros.report import plot_evaluation
+
+    config = load_config(args.config)
+    full = load_coefficients(args.coeffs, config)
+    lam = full.training.regularisation
+    if args.no_cv:
+        per_bag = [full.coeffs] * len(args.bags)
+    else:
+        per_bag = cross_validate(config, args.bags, full.coeffs, lam, args.cv_steps)
+    comparisons = compare(config, args.bags, per_bag)
+    aggregate = write_tables(comparisons, args.out)
+    names = [b.name for b in args.bags]
+    example = names.index(args.example) if args.example in names else 0
+    plot_evaluation(comparisons, config, full.coeffs, args.out / "figures", example)
+    import json
+
+    (args.out / "evaluation.json").write_text(
+        json.dumps(
+            {
+                "cross_validated": not args.no_cv,
+                "coefficients": str(args.coeffs),
+                "aggregate": aggregate,
+                "bags": {c.path.name: c.metrics for c in comparisons},
+            },
+            indent=2,
+        )
+    )
+    print((args.out / "evaluation.md").read_text(), end="")
+    print(f"tables, evaluation.json and figures in {args.out}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Simulate the paper's experiment 11, estimate it, write results and figures."""
     out: Path = args.out
@@ -118,6 +177,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(run=cmd_estimate)
 
+    p = sub.add_parser("train", help="fit PKBKR coefficients (eq. 18) over drop-test bags")
+    _add_config(p)
+    p.add_argument("bags", type=Path, nargs="+", metavar="BAG", help="rosbag2 directory or .mcap file")
+    p.add_argument("-o", "--out", type=Path, required=True, help="coefficient file to write (YAML)")
+    p.add_argument("--lambda", dest="regularisation", type=float, help="eq. 18 lambda (default: training.regularisation)")
+    p.add_argument("--init", type=Path, help="warm-start from this coefficient file")
+    p.add_argument("--resume", action="store_true", help="continue from OUT.checkpoint of an interrupted run")
+    p.add_argument("--steps", type=int, default=40, help="L-BFGS iterations (default 40)")
+    p.add_argument("--duration", type=float, help="use only this many seconds after each drop")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing coefficient file")
+    p.set_defaults(run=cmd_train)
+
+    p = sub.add_parser("evaluate", help="constant baseline vs PKBKR per bag, leave-one-experiment-out")
+    _add_config(p)
+    p.add_argument("bags", type=Path, nargs="+", metavar="BAG")
+    p.add_argument("--coeffs", type=Path, required=True, help="coefficients trained on all the bags")
+    p.add_argument("-o", "--out", type=Path, required=True, help="output directory for tables and figures")
+    p.add_argument("--no-cv", action="store_true", help="use --coeffs on every bag (in-sample, not cross-validated)")
+    p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per held-out fold (warm-started)")
+    p.add_argument("--example", default="exp_11", help="bag shown in the time-series figures (default exp_11)")
+    p.set_defaults(run=cmd_evaluate)
+
     p = sub.add_parser("demo", help="simulate a drop, estimate it, write results and figures")
     _add_config(p)
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
@@ -130,7 +211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, BagError, FileExistsError, FileNotFoundError, ValueError) as error:
+    except (ConfigError, BagError, CoefficientFileError, FileExistsError, FileNotFoundError, ValueError) as error:
         print(f"touchdown {args.command}: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

@@ -111,3 +111,98 @@ def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, 
     document = {"bags": {str(r.path): r.summary for r in results}, **(extra or {})}
     (out / "summary.json").write_text(json.dumps(document, indent=2))
     (out / "summary.md").write_text(summary_table(results))
+
+
+def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) -> list[Path]:
+    """The paper's Fig. 2-8 for a cross-validated campaign, and maps of the learned parameters."""
+    from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    c = comparisons[example]
+    t = _time(c.constant)
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    for i, ax in enumerate(axes):
+        ax.plot(t, c.constant.estimate.measured[:, i] * 1e3, ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(t, np.asarray(c.constant.estimate.filtered.state)[:, i] * 1e3, lw=1, label="constant [13]")
+        ax.plot(t, np.asarray(c.pkbkr.estimate.filtered.state)[:, i] * 1e3, lw=1, ls="--", label="PKBKR")
+        ax.set_ylabel(f"{AXES[i]} / mm")
+        ax.legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time after drop onset / s")
+    fig.suptitle(f"{c.path.name}: measured and estimated displacement (paper Fig. 2-4)")
+    written.append(_save(fig, out / "fig2-4_displacement.png"))
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4), sharey=True)
+    index = np.arange(len(comparisons))
+    for i, ax in enumerate(axes):
+        for offset, method in ((-0.2, "constant"), (0.2, "pkbkr")):
+            values = [x.metrics[method][f"rmse_{AXES[i]}_m"] * 1e3 for x in comparisons]
+            ax.bar(index + offset, values, width=0.4, label=method)
+        ax.axhline(0.02, color="r", lw=0.8, ls=":", label="0.02 mm")
+        ax.set_title(f"{AXES[i]}")
+        ax.set_xlabel("experiment")
+        ax.set_xticks(index, [x.path.name.removeprefix("exp_") for x in comparisons], fontsize=6, rotation=90)
+    axes[0].set_ylabel("displacement RMSE (eq. 19) / mm")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Displacement estimation error per experiment, held-out (paper Fig. 5)")
+    written.append(_save(fig, out / "fig5_rmse_per_experiment.png"))
+
+    if c.constant.truth is not None:
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        truth = c.constant.truth.contact_force
+        for ax, label, pick in (
+            (axes[0], "axial F_z / kN", lambda f: f[:, 2]),
+            (axes[1], "radial |F_xy| / kN", lambda f: np.hypot(f[:, 0], f[:, 1])),
+        ):
+            ax.plot(t, pick(truth) / 1e3, color="k", lw=1.5, label="truth")
+            ax.plot(t, pick(np.asarray(c.constant.estimate.filtered.force_xyz)) / 1e3, lw=1, label="constant [13]")
+            ax.plot(t, pick(np.asarray(c.pkbkr.estimate.filtered.force_xyz)) / 1e3, lw=1, ls="--", label="PKBKR")
+            ax.set_ylabel(label)
+            ax.legend(loc="upper right", fontsize=8)
+        axes[-1].set_xlabel("time after drop onset / s")
+        fig.suptitle(f"{c.path.name}: estimated and true contact force (paper Fig. 6)")
+        written.append(_save(fig, out / "fig6_force.png"))
+
+    from touchdown_ros.core.metrics import impacts
+    from touchdown_ros.evaluate import IMPACT_THRESHOLD
+
+    for name, pick, figure in (
+        ("axial", lambda f: f[:, 2], "fig7_axial_peaks.png"),
+        ("normal (radial)", lambda f: np.hypot(f[:, 0], f[:, 1]), "fig8_normal_peaks.png"),
+    ):
+        per_number: dict[int, list[float]] = {}
+        for x in comparisons:
+            force = pick(np.asarray(x.pkbkr.estimate.filtered.force_xyz))
+            for number, (_, _, _, peak) in enumerate(impacts(force, IMPACT_THRESHOLD), start=1):
+                per_number.setdefault(number, []).append(peak / 1e3)
+        if not per_number:
+            continue
+        numbers = sorted(per_number)[:15]
+        fig, ax = plt.subplots(figsize=(9, 4))
+        ax.boxplot([per_number[n] for n in numbers], labels=[str(n) for n in numbers])
+        ax.set_xlabel("impact number")
+        ax.set_ylabel(f"peak {name} force / kN")
+        ax.set_title(f"Estimated peak {name} force per impact, all experiments (PKBKR)")
+        written.append(_save(fig, out / figure))
+
+    kernel, nominal = config.kernel, config.nominal
+    deformation = np.linspace(0, float(np.max(kernel.T_R[:, 0])) * kernel.deformation_scale, 60)
+    velocity = np.linspace(
+        float(np.min(kernel.T_R[:, 1])) * kernel.velocity_scale, float(np.max(kernel.T_R[:, 1])) * kernel.velocity_scale, 60
+    )
+    D, V = np.meshgrid(deformation, velocity, indexing="ij")
+    maps = list(zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D, V))) + list(
+        zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D, V))
+    )
+    fig, axes = plt.subplots(2, 3, figsize=(12, 7))
+    for ax, (name, value) in zip(axes.ravel(), maps):
+        relative = np.asarray(value) / getattr(nominal, name)
+        image = ax.pcolormesh(V, D * 1e6, relative, shading="auto", cmap="viridis")
+        fig.colorbar(image, ax=ax, label=f"{name} / nominal")
+        ax.set_title(f"{name}(deformation, velocity)")
+        ax.set_xlabel("velocity / (m/s)")
+        ax.set_ylabel("deformation / um")
+    fig.suptitle("Learned PKBKR parameters relative to their nominal values")
+    written.append(_save(fig, out / "parameter_maps.png"))
+    return written

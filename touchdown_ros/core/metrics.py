@@ -16,3 +16,35 @@ def relative_peak_error(estimate: np.ndarray, reference: np.ndarray) -> float:
     """(max |estimate| - max |reference|) / max |reference|."""
     peak = np.nanmax(np.abs(reference))
     return float((np.nanmax(np.abs(estimate)) - peak) / peak)
+
+
+def impacts(force: np.ndarray, threshold: float, merge_gap: int = 10) -> list[tuple[int, int, int, float]]:
+    """Impacts as (start, end, peak index, peak force): runs of force > threshold (N).
+
+    Runs closer than merge_gap samples are one impact (contact chatter at the threshold).
+    """
+    above = np.asarray(force) > threshold
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], above, [False]]).astype(int)))
+    runs = [[int(s), int(e)] for s, e in zip(edges[::2], edges[1::2])]
+    merged: list[list[int]] = []
+    for start, end in runs:
+        if merged and start - merged[-1][1] < merge_gap:
+            merged[-1][1] = end
+        else:
+            merged.append([start, end])
+    result = []
+    for start, end in merged:
+        peak = start + int(np.argmax(force[start:end]))
+        result.append((start, end, peak, float(force[peak])))
+    return result
+
+
+def peak_errors_per_impact(
+    estimated: np.ndarray, true: np.ndarray, threshold: float, merge_gap: int = 10, margin: int = 5
+) -> list[tuple[int, float, float]]:
+    """For each true impact: (impact number from 1, true peak N, relative error of the estimated peak nearby)."""
+    errors = []
+    for number, (start, end, _, peak) in enumerate(impacts(true, threshold, merge_gap), start=1):
+        window = estimated[max(0, start - margin) : end + margin]
+        errors.append((number, peak, float((np.max(window) - peak) / peak)))
+    return errors
