@@ -116,15 +116,20 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         raise CoefficientFileError(
             f"{path}: made for another rig than {config.source}; differs in: " + "; ".join(differences[:8])
         )
-    try:
-        table = document["coefficients"]
-        alpha_R = np.array([table[name] for name in RADIAL_PARAMETERS], dtype=float)
-        alpha_Z = np.array([table[name] for name in AXIAL_PARAMETERS], dtype=float)
-    except (KeyError, TypeError, ValueError) as error:
-        raise CoefficientFileError(f"{path}: malformed coefficients: {error}") from None
-    expected = (3, len(config.kernel.T_R)), (3, len(config.kernel.T_Z))
-    if (alpha_R.shape, alpha_Z.shape) != expected or not (np.isfinite(alpha_R).all() and np.isfinite(alpha_Z).all()):
-        raise CoefficientFileError(f"{path}: coefficients must be finite with shapes {expected}")
+    table = document.get("coefficients")
+    sizes = {**{name: len(config.kernel.T_R) for name in RADIAL_PARAMETERS}, **{name: len(config.kernel.T_Z) for name in AXIAL_PARAMETERS}}
+    rows = {}
+    for name, size in sizes.items():
+        value = table.get(name) if isinstance(table, dict) else None
+        try:
+            row = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            row = np.empty(0)
+        if row.shape != (size,) or not np.isfinite(row).all():
+            raise CoefficientFileError(f"{path}: coefficients.{name} must be {size} finite numbers (one per kernel centre)")
+        rows[name] = row
+    alpha_R = np.stack([rows[name] for name in RADIAL_PARAMETERS])
+    alpha_Z = np.stack([rows[name] for name in AXIAL_PARAMETERS])
     training = document.get("training") or {}
     record = TrainingRecord(
         bags=training.get("bags", ()),

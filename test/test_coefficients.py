@@ -1,0 +1,95 @@
+"""Coefficient files: round trip, rig check, schema, atomic write, bad files."""
+import os
+
+import numpy as np
+import pytest
+import yaml
+
+from touchdown_ros.core.types import Coefficients
+from touchdown_ros.io.coefficients import (
+    CoefficientFileError,
+    TrainingRecord,
+    load_coefficients,
+    save_coefficients,
+    sha256_of,
+)
+from touchdown_ros.io.config import load_config, reference_rig_path
+
+CONFIG = load_config()
+
+
+def random_coeffs(seed=0):
+    rng = np.random.default_rng(seed)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    return Coefficients(rng.standard_normal(zeros.alpha_R.shape), rng.standard_normal(zeros.alpha_Z.shape))
+
+
+def test_round_trip_is_exact_and_records_training(tmp_path):
+    coeffs = random_coeffs()
+    record = TrainingRecord(bags=[{"path": "a", "sha256": "00"}], regularisation=1e-3, final_loss=3.5, steps=7)
+    path = save_coefficients(tmp_path / "c.yaml", coeffs, CONFIG, record)
+    loaded = load_coefficients(path, CONFIG)
+    np.testing.assert_array_equal(loaded.coeffs.alpha_R, coeffs.alpha_R)
+    np.testing.assert_array_equal(loaded.coeffs.alpha_Z, coeffs.alpha_Z)
+    assert loaded.training.final_loss == 3.5 and loaded.training.steps == 7
+    document = yaml.safe_load(path.read_text())
+    assert document["schema_version"] == 1 and document["rig_fingerprint"] == CONFIG.fingerprint()
+    assert set(document["coefficients"]) >= {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"}
+    assert document["training"]["bags"] == [{"path": "a", "sha256": "00"}]
+
+
+def test_other_rig_is_refused_naming_the_difference(tmp_path):
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), CONFIG, TrainingRecord())
+    other = load_config(reference_rig_path(), overrides={"rig.mass": 250.0, "contact.k_Z": 1.0e8})
+    with pytest.raises(CoefficientFileError, match=r"rig\.mass: file 240\.0, rig 250\.0") as error:
+        load_coefficients(path, other)
+    assert "contact.k_Z" in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{unclosed", "not a readable YAML"),
+        ("kind: something_else\n", "not a touchdown_ros coefficient file"),
+        ("kind: touchdown_ros/pkbkr_coefficients\nschema_version: 99\n", "schema version 99"),
+    ],
+)
+def test_bad_files_get_clear_errors(tmp_path, content, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(content)
+    with pytest.raises(CoefficientFileError, match=message):
+        load_coefficients(path, CONFIG)
+
+
+def test_wrong_shape_and_missing_file(tmp_path):
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), CONFIG, TrainingRecord())
+    document = yaml.safe_load(path.read_text())
+    document["coefficients"]["k_R"] = document["coefficients"]["k_R"][:-1]
+    path.write_text(yaml.safe_dump(document))
+    with pytest.raises(CoefficientFileError, match=r"coefficients\.k_R must be 25 finite numbers"):
+        load_coefficients(path, CONFIG)
+    with pytest.raises(CoefficientFileError, match="not found"):
+        load_coefficients(tmp_path / "missing.yaml", CONFIG)
+
+
+def test_interrupted_write_leaves_old_file_and_no_temporary(tmp_path, monkeypatch):
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(0), CONFIG, TrainingRecord())
+    before = path.read_bytes()
+
+    def fail(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", fail)
+    with pytest.raises(KeyboardInterrupt):
+        save_coefficients(path, random_coeffs(1), CONFIG, TrainingRecord())
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["c.yaml"]
+
+
+def test_sha256_of_directory_changes_with_content(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "a.mcap").write_bytes(b"123")
+    first = sha256_of(bag)
+    (bag / "a.mcap").write_bytes(b"124")
+    assert sha256_of(bag) != first and len(first) == 64

@@ -1,0 +1,62 @@
+"""Eq. 18 training: the gradient is right and fitting recovers a known model."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from touchdown_ros.core.dynamics import rk4_step
+from touchdown_ros.core.training import loss, make_batch
+from touchdown_ros.core.types import Coefficients
+from touchdown_ros.io.config import load_config
+from touchdown_ros.train import TrainingData, fit
+
+CONFIG = load_config()
+H = CONFIG.sample_period
+
+
+def records_of(coeffs, count=3, samples=600, seed=0):
+    model = CONFIG.model(coeffs)
+    step = jax.jit(lambda s: rk4_step(model, s, H / 10))
+    rng = np.random.default_rng(seed)
+    records = []
+    for b in range(count):
+        xi = jnp.array([3e-6 * b, -2e-6, 0.0, 0.0, 0.0, 0.0, 0.0])
+        states = []
+        for _ in range(samples):
+            for _ in range(10):
+                xi = step(xi)
+            states.append(np.asarray(xi[:3]))
+        records.append(np.array(states) + CONFIG.noise_rms * rng.standard_normal((samples, 3)))
+    return records
+
+
+def true_coeffs():
+    rng = np.random.default_rng(3)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    return Coefficients(0.3 * rng.standard_normal(zeros.alpha_R.shape), 0.3 * rng.standard_normal(zeros.alpha_Z.shape))
+
+
+def test_loss_gradient_matches_finite_differences():
+    records = records_of(true_coeffs(), count=2, samples=300)
+    batch = make_batch(records, np.asarray(CONFIG.noise.initial))
+    model = CONFIG.model()
+    coeffs = Coefficients.zeros(CONFIG.kernel)
+    f = jax.jit(lambda c: loss(c, model, CONFIG.noise, H, batch, 1e-3))
+    grad = jax.grad(lambda c: loss(c, model, CONFIG.noise, H, batch, 1e-3))(coeffs)
+    for field, index in (("alpha_Z", (0, 2)), ("alpha_Z", (1, 7)), ("alpha_R", (0, 12))):
+        step = 1e-6
+        plus = coeffs._replace(**{field: getattr(coeffs, field).at[index].add(step)})
+        minus = coeffs._replace(**{field: getattr(coeffs, field).at[index].add(-step)})
+        fd = (float(f(plus)) - float(f(minus))) / (2 * step)
+        assert np.isclose(float(getattr(grad, field)[index]), fd, rtol=1e-4, atol=1e-6), (field, index)
+
+
+def test_fit_recovers_the_loss_of_the_true_model():
+    truth = true_coeffs()
+    records = records_of(truth)
+    data = TrainingData((), tuple(records))
+    result = fit(CONFIG, data, regularisation=1e-5, max_steps=25)
+    batch = make_batch(records, np.asarray(CONFIG.noise.initial))
+    true_loss = float(loss(truth, CONFIG.model(), CONFIG.noise, H, batch, 0.0))
+    assert result.initial_loss > 2 * true_loss
+    assert result.final_loss < 1.01 * true_loss
+    assert result.history == tuple(sorted(result.history, reverse=True))
