@@ -1,0 +1,153 @@
+"""Training the 21-bag campaign: wall time and peak memory, ours vs scipy least_squares (FD Jacobian).
+
+Both minimise the same eq. 18 loss from the constant model (all alpha = 0). Ours:
+L-BFGS on the reverse-mode AD gradient through the filter. Baseline: scipy
+`least_squares` (trust-region reflective) on the residual vector whose squared norm is
+the same loss, its Jacobian by 2-point finite differences (150 forward passes each).
+Each method runs in its own process (peak memory = that process's max RSS); the
+baseline stops when it reaches our final loss or its time budget. Wall times include
+JAX compilation. Run: `.venv/bin/python bench/train_cost.py [--bags DIR]`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def simulate_campaign(out: Path) -> list[Path]:
+    subprocess.run([sys.executable, "-m", "touchdown_ros.cli", "simulate", "--campaign", "-o", str(out)], check=True)
+    return sorted(out.glob("exp_*"))
+
+
+def run_ours(bags: list[Path], steps: int) -> dict:
+    from touchdown_ros.io.config import load_config
+    from touchdown_ros.train import train
+
+    start = time.perf_counter()
+    config = load_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        result = train(config, bags, Path(tmp) / "c.yaml", max_steps=steps)
+    return {
+        "seconds": time.perf_counter() - start,
+        "final_loss": result.final_loss,
+        "initial_loss": result.initial_loss,
+        "steps": result.steps,
+        "peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def run_baseline(bags: list[Path], target: float, budget: float) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    import scipy.optimize
+
+    from touchdown_ros.core.pkbkr import gram
+    from touchdown_ros.core.training import make_batch, prediction_errors
+    from touchdown_ros.core.types import Coefficients
+    from touchdown_ros.io.config import load_config
+    from touchdown_ros.train import load_training_data
+
+    start = time.perf_counter()
+    config = load_config()
+    data = load_training_data(config, bags)
+    batch = make_batch(list(data.records), np.asarray(config.noise.initial))
+    model, noise, h, lam = config.model(), config.noise, config.sample_period, config.regularisation
+    count = float(np.sum(batch.valid))
+    K_R, K_Z = gram(config.kernel)
+    L_R, L_Z = np.linalg.cholesky(np.asarray(K_R) + 1e-10 * np.eye(len(K_R))), np.linalg.cholesky(
+        np.asarray(K_Z) + 1e-10 * np.eye(len(K_Z))
+    )
+    zeros = Coefficients.zeros(config.kernel)
+    split = zeros.alpha_R.size
+
+    @jax.jit
+    def output_residuals(theta):
+        coeffs = Coefficients(theta[:split].reshape(zeros.alpha_R.shape), theta[split:].reshape(zeros.alpha_Z.shape))
+        errors = prediction_errors(model._replace(coeffs=coeffs), noise, h, batch)
+        scaled = jnp.where(batch.valid[..., None], errors / jnp.sqrt(noise.measurement), 0.0)
+        return scaled.ravel() / jnp.sqrt(count)
+
+    def residuals(theta):
+        alpha_R = theta[:split].reshape(zeros.alpha_R.shape)
+        alpha_Z = theta[split:].reshape(zeros.alpha_Z.shape)
+        penalty = np.sqrt(lam) * np.concatenate([(alpha_R @ L_R).ravel(), (alpha_Z @ L_Z).ravel()])
+        return np.concatenate([np.asarray(output_residuals(theta)), penalty])
+
+    reached = {"seconds": None}
+    best = {"loss": float("inf")}
+
+    def tracked(theta):
+        r = residuals(theta)
+        value = float(r @ r)
+        best["loss"] = min(best["loss"], value)
+        if value <= target and reached["seconds"] is None:
+            reached["seconds"] = time.perf_counter() - start
+            raise StopIteration
+        if time.perf_counter() - start > budget:
+            raise TimeoutError
+        return r
+
+    theta0 = np.zeros(split + zeros.alpha_Z.size)
+    initial_loss = float(residuals(theta0) @ residuals(theta0))
+    try:
+        scipy.optimize.least_squares(tracked, theta0, jac="2-point", method="trf")
+    except (StopIteration, TimeoutError):
+        pass
+    return {
+        "seconds": time.perf_counter() - start,
+        "reached_target_seconds": reached["seconds"],
+        "best_loss": best["loss"],
+        "initial_loss": initial_loss,
+        "peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bags", type=Path, help="directory of exp_* bags (default: simulate the campaign)")
+    parser.add_argument("--steps", type=int, default=40)
+    parser.add_argument("--budget", type=float, default=1200.0, help="baseline time budget, s")
+    parser.add_argument("--worker", choices=("ours", "baseline"), help=argparse.SUPPRESS)
+    parser.add_argument("--target", type=float, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.worker:
+        bags = sorted(args.bags.glob("exp_*"))
+        result = run_ours(bags, args.steps) if args.worker == "ours" else run_baseline(bags, args.target, args.budget)
+        print(json.dumps(result))
+        return
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bag_dir = args.bags or Path(tmp) / "bags"
+        if args.bags is None:
+            simulate_campaign(bag_dir)
+        common = [sys.executable, __file__, "--bags", str(bag_dir), "--steps", str(args.steps), "--budget", str(args.budget)]
+        ours = json.loads(subprocess.run([*common, "--worker", "ours"], check=True, capture_output=True, text=True).stdout)
+        baseline = json.loads(
+            subprocess.run(
+                [*common, "--worker", "baseline", "--target", str(ours["final_loss"])],
+                check=True,
+                capture_output=True,
+                text=True,
+            ).stdout
+        )
+    base_time = baseline["reached_target_seconds"]
+    ratio = f"{base_time / ours['seconds']:.0f}x" if base_time else f"> {baseline['seconds'] / ours['seconds']:.0f}x (not reached)"
+    print(f"Training the 21-bag campaign to loss {ours['final_loss']:.5g} (from {ours['initial_loss']:.5g}):")
+    print("| method | wall time / s | peak memory / MiB | loss reached |")
+    print("|---|---:|---:|---:|")
+    print(f"| ours: L-BFGS, AD gradient ({ours['steps']} steps) | {ours['seconds']:.1f} | {ours['peak_rss_MiB']:.0f} | {ours['final_loss']:.5g} |")
+    shown = f"{base_time:.1f}" if base_time else f"> {baseline['seconds']:.0f} (budget)"
+    print(f"| scipy least_squares, FD Jacobian | {shown} | {baseline['peak_rss_MiB']:.0f} | {baseline['best_loss']:.5g} |")
+    print(f"speed-up: {ratio}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""Rig YAML loading: the reference rig, ROS 2 parameter-file form, clear errors."""
+import numpy as np
+import pytest
+
+from touchdown_ros.io.config import ConfigError, load_config, reference_rig_path
+
+
+def write(tmp_path, text):
+    path = tmp_path / "rig.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_reference_rig_is_the_documented_rig():
+    config = load_config()
+    assert config.rig.mass == 240.0
+    assert np.isclose(config.rig.speed, 5000 * 2 * np.pi / 60)
+    assert config.rig.eccentricity == 10e-6
+    assert config.rig.radial_clearance == config.rig.axial_clearance == 0.25e-3
+    assert config.sample_period == 1e-4 and config.noise_rms == 2e-6
+    assert config.kernel.T_R.shape == (25, 2) and config.kernel.T_Z.shape == (25, 2)
+    assert config.topics.displacement == "/amb/displacement"
+    assert np.allclose(config.noise.measurement, 4e-12)
+
+
+def test_named_node_section_and_overrides(tmp_path):
+    text = reference_rig_path().read_text().replace("/**:", "touchdown_estimator:")
+    config = load_config(write(tmp_path, text), overrides={"rig.mass": 300.0})
+    assert config.rig.mass == 300.0
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("mass: 240.0", "mass: -1.0"), "'rig.mass' must be > 0"),
+        (("mass: 240.0", "mass: heavy"), "'rig.mass' must be a finite number"),
+        (("k_R: 1.0e+8", "k_R: 1.0e8"), "write 1.0e\\+8"),
+        (("mass: 240.0", "mass: 240.0\n      colour: red"), "unknown parameter\\(s\\): rig.colour"),
+        (("      mass: 240.0                     # kg\n", ""), "missing parameter 'rig.mass'"),
+        (("measurement_noise: 2.0e-6", "measurement_noise: [1, 2]"), "'filter.measurement_noise' must be a finite"),
+        (("process_noise: [", "process_noise: [1.0, "), "'filter.process_noise' must have 7 values"),
+    ],
+)
+def test_bad_values_are_named(tmp_path, edit, message):
+    text = reference_rig_path().read_text()
+    assert edit[0] in text
+    with pytest.raises(ConfigError, match=message):
+        load_config(write(tmp_path, text.replace(edit[0], edit[1], 1)))
+
+
+def test_not_a_parameter_file(tmp_path):
+    with pytest.raises(ConfigError, match="ros__parameters"):
+        load_config(write(tmp_path, "rig:\n  mass: 1.0\n"))
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(write(tmp_path, "a: [\n"))
+
+
+def test_fingerprint_follows_the_model_not_the_topics(tmp_path):
+    base = load_config()
+    assert load_config(overrides={"topics.velocity": "/v"}).fingerprint() == base.fingerprint()
+    assert load_config(overrides={"contact.k_Z": 1.0}).fingerprint() != base.fingerprint()
