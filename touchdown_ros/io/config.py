@@ -45,6 +45,38 @@ class DropDetection:
     levitated_window: float  # s
 
 
+EXECUTORS = ("events", "single")
+RELIABILITIES = ("best_effort", "reliable")
+OUTPUT_MODES = ("per_sample", "batch", "both")
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """The live node's `node.*` parameters (touchdown_estimator); SI units."""
+
+    coefficients: str = ""  # PKBKR coefficient file; empty: the constant model
+    executor: str = "events"  # events (rclpy EventsExecutor) | single (SingleThreadedExecutor)
+    input_reliability: str = "best_effort"  # QoS of the displacement subscriptions
+    input_depth: int = 1000  # keep-last history depth of the input subscriptions
+    batch_topic: str = "/amb/displacement_batch"  # sensor_msgs/PointCloud2 with fields t, x, y, z
+    output_mode: str = "per_sample"  # per_sample (the /touchdown/* topics) | batch | both
+    batch_output_topic: str = "/touchdown/estimate_batch"  # PointCloud2, one message per EKF run
+    output_reliability: str = "reliable"
+    output_depth: int = 1000
+    flush_period: float = 0.001  # s between timer runs of the EKF on the pending samples
+    flush_samples: int = 16  # pending samples that run the EKF at once (without waiting for the timer)
+    chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
+    diagnostics_period: float = 1.0  # s
+    alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
+    sensor_range: float = 1.0e-3  # m, |value| at or beyond it is saturated
+    millimetre_limit: float = 0.01  # m, |value| beyond it is taken for a value in mm
+    grid_tolerance: float = 0.25  # sample periods a stamp may sit off the grid
+    max_gap: float = 0.05  # s, a longer stamp jump is a clock jump (estimator reset)
+    resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
+    relevitation_band: float = 20.0e-6  # m around the levitated mean that counts as levitated
+    relevitation_window: float = 0.005  # s in the band that ends a touchdown
+
+
 @dataclass(frozen=True)
 class Config:
     """Everything one rig YAML says, typed and validated."""
@@ -62,6 +94,7 @@ class Config:
     simulator: Mapping[str, Any] = field(default_factory=dict)
     source: str = "<built-in>"
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
+    node: NodeSettings = field(default_factory=NodeSettings)  # the live node's node.* parameters
 
     def model(self, coeffs: Coefficients | None = None) -> Model:
         """The estimator's model; all alpha = 0 (constant baseline) unless coeffs are given."""
@@ -171,11 +204,31 @@ class _Reader:
             raise ConfigError(f"{self.source}: parameter '{key}' must not be negative")
         return array
 
-    def text(self, key: str, default: str) -> str:
+    def text(self, key: str, default: str, allow_empty: bool = False) -> str:
         value = self._get(key, default)
-        if not isinstance(value, str) or not value:
+        if not isinstance(value, str) or not (value or allow_empty):
             raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
         return value
+
+    def choice(self, key: str, default: str, allowed: tuple[str, ...]) -> str:
+        value = self.text(key, default)
+        if value not in allowed:
+            raise ConfigError(f"{self.source}: parameter '{key}' must be one of {', '.join(allowed)}, got {value!r}")
+        return value
+
+    def integer(self, key: str, default: Any = ..., minimum: int = 1) -> int:
+        value = self._get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ConfigError(f"{self.source}: parameter '{key}' must be an integer >= {minimum}, got {value!r}")
+        return value
+
+    def integers(self, key: str, default: tuple[int, ...], minimum: int = 1) -> tuple[int, ...]:
+        value = self._get(key, list(default))
+        if not isinstance(value, (list, tuple)) or not value or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= minimum for v in value
+        ):
+            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of integers >= {minimum}")
+        return tuple(value)
 
 
 def _looks_numeric(text: str) -> bool:
@@ -233,9 +286,38 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         simulator={k.removeprefix("simulator."): v for k, v in flat.items() if k.startswith("simulator.")},
         source=source,
         parameters=dict(flat),
+        node=_node_settings(read),
     )
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
     if unknown:
         raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}")
     return config
+
+
+def _node_settings(read: _Reader) -> NodeSettings:
+    """The optional `node.*` section (defaults of NodeSettings for what is absent)."""
+    d = NodeSettings()
+    return NodeSettings(
+        coefficients=read.text("node.coefficients", d.coefficients, allow_empty=True),
+        executor=read.choice("node.executor", d.executor, EXECUTORS),
+        input_reliability=read.choice("node.input_reliability", d.input_reliability, RELIABILITIES),
+        input_depth=read.integer("node.input_depth", d.input_depth),
+        batch_topic=read.text("node.batch_topic", d.batch_topic),
+        output_mode=read.choice("node.output_mode", d.output_mode, OUTPUT_MODES),
+        batch_output_topic=read.text("node.batch_output_topic", d.batch_output_topic),
+        output_reliability=read.choice("node.output_reliability", d.output_reliability, RELIABILITIES),
+        output_depth=read.integer("node.output_depth", d.output_depth),
+        flush_period=read.number("node.flush_period", d.flush_period, positive=True),
+        flush_samples=read.integer("node.flush_samples", d.flush_samples),
+        chunk_sizes=read.integers("node.chunk_sizes", d.chunk_sizes),
+        diagnostics_period=read.number("node.diagnostics_period", d.diagnostics_period, positive=True),
+        alarm_force=read.number("node.alarm_force", d.alarm_force, positive=True),
+        sensor_range=read.number("node.sensor_range", d.sensor_range, positive=True),
+        millimetre_limit=read.number("node.millimetre_limit", d.millimetre_limit, positive=True),
+        grid_tolerance=read.number("node.grid_tolerance", d.grid_tolerance, positive=True),
+        max_gap=read.number("node.max_gap", d.max_gap, positive=True),
+        resync_after=read.integer("node.resync_after", d.resync_after),
+        relevitation_band=read.number("node.relevitation_band", d.relevitation_band, positive=True),
+        relevitation_window=read.number("node.relevitation_window", d.relevitation_window, positive=True),
+    )
