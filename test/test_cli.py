@@ -1,0 +1,104 @@
+"""The `touchdown` command end to end, through real bags written and read back."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from touchdown_ros.cli import main
+from touchdown_ros.io.bags import read_displacement, read_vector_topic
+from touchdown_ros.io.config import load_config
+
+CONFIG = load_config()
+
+
+@pytest.fixture(scope="module")
+def drop_bags(tmp_path_factory):
+    """Experiments 1 (no brake, no load) and 11 (brake + axial load) of Table 1."""
+    out = tmp_path_factory.mktemp("bags")
+    assert main(["simulate", "--experiment", "1", "11", "-o", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def estimate_dir(drop_bags, tmp_path_factory):
+    out = tmp_path_factory.mktemp("estimate")
+    assert main(["estimate", str(drop_bags / "exp_11"), "-o", str(out)]) == 0
+    return out
+
+
+def test_help_of_every_subcommand():
+    for command in ("simulate", "estimate", "train", "evaluate", "demo"):
+        result = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.cli", command, "--help"], capture_output=True, text=True, check=True
+        )
+        assert "usage: touchdown " + command in result.stdout
+
+
+def test_simulated_bag_carries_displacement_and_truth(drop_bags):
+    series = read_displacement(drop_bags / "exp_11")
+    assert series.xyz.shape[1] == 3 and len(series.stamps_ns) > 1500
+    assert np.all(np.diff(series.stamps_ns) == 100_000)
+    for topic in ("/truth/velocity", "/truth/acceleration", "/truth/contact_force"):
+        truth = read_vector_topic(drop_bags / "exp_11", topic)
+        np.testing.assert_array_equal(truth.stamps_ns, series.stamps_ns)
+
+
+def test_estimate_writes_bag_summary_and_figures(estimate_dir):
+    out_bag = estimate_dir / "exp_11_estimate"
+    for topic in ("/touchdown/velocity", "/touchdown/acceleration", "/touchdown/contact_force", "/touchdown/displacement"):
+        series = read_vector_topic(out_bag, topic)
+        assert series is not None and len(series.stamps_ns) > 1400, topic
+    summary = json.loads((estimate_dir / "summary.json").read_text())
+    (bag_summary,) = summary["bags"].values()
+    assert max(bag_summary["rmse_displacement_m"]) < 20e-6  # the paper's 0.02 mm
+    truth = bag_summary["truth"]
+    assert np.linalg.norm(truth["rmse_velocity_mps"]) < 0.02
+    for name in ("displacement.png", "velocity.png", "contact_force.png"):
+        assert (estimate_dir / "figures" / "exp_11" / name).stat().st_size > 10_000
+
+
+def test_estimate_recovers_velocity_and_force_close_to_truth(drop_bags):
+    """The figure the README quotes: velocity and contact force error against the truth."""
+    from touchdown_ros.offline import estimate_bag, estimator_for
+
+    result = estimate_bag(CONFIG, drop_bags / "exp_01", estimator_for(CONFIG))
+    truth = result.summary["truth"]
+    peak_speed = np.nanmax(np.abs(result.truth.velocity))
+    assert np.linalg.norm(truth["rmse_velocity_mps"]) < 0.1 * peak_speed
+    assert abs(truth["peak_axial_force_error"]) < 0.3
+
+
+def test_existing_output_is_not_overwritten(drop_bags, tmp_path, capsys):
+    assert main(["simulate", "--experiment", "1", "-o", str(drop_bags)]) == 3
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+
+
+def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
+    garbage = tmp_path / "broken.mcap"
+    garbage.write_bytes(b"\x89MCAP0\r\n" + bytes(100))
+    out = tmp_path / "out"
+    assert main(["estimate", str(garbage), "-o", str(out)]) == 3
+    assert "broken.mcap" in capsys.readouterr().err
+    assert not (out / "broken_estimate").exists()
+
+
+def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
+    coeffs = tmp_path / "c.yaml"
+    code = main(
+        ["train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(coeffs), "--steps", "3", "--duration", "0.05"]
+    )
+    assert code == 0
+    document = yaml.safe_load(coeffs.read_text())
+    assert [b["path"] for b in document["training"]["bags"]] == [str(drop_bags / "exp_01"), str(drop_bags / "exp_11")]
+    assert all(len(b["sha256"]) == 64 for b in document["training"]["bags"])
+    assert document["training"]["final_loss"] < document["training"]["initial_loss"]
+    assert not (tmp_path / "c.yaml.checkpoint").exists()
+    assert main(["estimate", str(drop_bags / "exp_01"), "--coeffs", str(coeffs), "-o", str(tmp_path / "e")]) == 0
+    other_rig = tmp_path / "other.yaml"
+    other_rig.write_text(
+        (CONFIG.source and open(CONFIG.source).read()).replace("mass: 240.0", "mass: 250.0")
+    )
+    assert main(["estimate", str(drop_bags / "exp_01"), "--config", str(other_rig), "--coeffs", str(coeffs), "-o", str(tmp_path / "f")]) == 3
