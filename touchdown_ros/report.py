@@ -180,7 +180,7 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
             continue
         numbers = sorted(per_number)[:15]
         fig, ax = plt.subplots(figsize=(9, 4))
-        ax.boxplot([per_number[n] for n in numbers], labels=[str(n) for n in numbers])
+        ax.boxplot([per_number[n] for n in numbers], tick_labels=[str(n) for n in numbers])
         ax.set_xlabel("impact number")
         ax.set_ylabel(f"peak {name} force / kN")
         ax.set_title(f"Estimated peak {name} force per impact, all experiments (PKBKR)")
