@@ -102,3 +102,10 @@ def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
         (CONFIG.source and open(CONFIG.source).read()).replace("mass: 240.0", "mass: 250.0")
     )
     assert main(["estimate", str(drop_bags / "exp_01"), "--config", str(other_rig), "--coeffs", str(coeffs), "-o", str(tmp_path / "f")]) == 3
+
+
+def test_quick_demo_writes_bag_estimate_and_figures(tmp_path):
+    assert main(["demo", "--quick", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "bags" / "exp_11" / "metadata.yaml").is_file()
+    assert (tmp_path / "estimate" / "exp_11_estimate" / "metadata.yaml").is_file()
+    assert (tmp_path / "estimate" / "figures" / "exp_11" / "contact_force.png").is_file()

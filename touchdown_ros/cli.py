@@ -136,18 +136,38 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate the paper's experiment 11, estimate it, write results and figures."""
+    """Simulate the 21-experiment campaign, train PKBKR, evaluate it leave-one-out, estimate exp 11."""
     out: Path = args.out
     bags = out / "bags"
-    sim = argparse.Namespace(
-        config=args.config, out=bags, campaign=False, experiment=[11], seed=args.seed, overwrite=True
+    numbers = [11] if args.quick else None
+    cmd_simulate(
+        argparse.Namespace(
+            config=args.config, out=bags, campaign=not args.quick, experiment=numbers, seed=args.seed, overwrite=True
+        )
     )
-    cmd_simulate(sim)
-    est = argparse.Namespace(
-        config=args.config, bags=[bags / "exp_11"], coeffs=None, out=out / "estimate", overwrite=True, no_figures=False
+    all_bags = sorted(bags.glob("exp_*"))
+    if not args.quick:
+        coeffs = out / "coefficients.yaml"
+        cmd_train(
+            argparse.Namespace(
+                config=args.config, bags=all_bags, out=coeffs, regularisation=None, init=None, resume=False,
+                steps=args.steps, duration=None, overwrite=True,
+            )
+        )
+        cmd_evaluate(
+            argparse.Namespace(
+                config=args.config, bags=all_bags, coeffs=coeffs, out=out / "evaluation", no_cv=False,
+                cv_steps=args.cv_steps, example="exp_11",
+            )
+        )
+    cmd_estimate(
+        argparse.Namespace(
+            config=args.config, bags=[bags / "exp_11"], coeffs=None if args.quick else out / "coefficients.yaml",
+            out=out / "estimate", overwrite=True, no_figures=False,
+        )
     )
-    cmd_estimate(est)
-    print(f"demo done: open {out / 'estimate' / 'figures' / 'exp_11'} for the figures")
+    report = "" if args.quick else f"evaluation report in {out / 'evaluation'}, "
+    print(f"demo done: {report}figures of exp_11 in {out / 'estimate' / 'figures' / 'exp_11'}")
     return 0
 
 
@@ -199,10 +219,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--example", default="exp_11", help="bag shown in the time-series figures (default exp_11)")
     p.set_defaults(run=cmd_evaluate)
 
-    p = sub.add_parser("demo", help="simulate a drop, estimate it, write results and figures")
+    p = sub.add_parser(
+        "demo", help="simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 10 min)"
+    )
     _add_config(p)
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=40, help="training L-BFGS steps")
+    p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per leave-one-out fold")
+    p.add_argument("--quick", action="store_true", help="only simulate and estimate experiment 11 (constant model)")
     p.set_defaults(run=cmd_demo)
     return parser
 
