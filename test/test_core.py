@@ -115,6 +115,22 @@ def test_learned_parameters_at_one_state_match_a_hand_kernel():
     np.testing.assert_allclose(float(got), expected_F_n, rtol=1e-12)
 
 
+def test_axial_kernel_input_is_the_compression():
+    """zeta's deformation is -(z + z0) >= 0 in contact, so a centre at +2 scales covers 2 scales of compression."""
+    kernel = CONFIG.kernel
+    centre = int(np.argmin(np.sum((np.asarray(kernel.T_Z) - np.array([2.0, 0.0])) ** 2, axis=1)))
+    assert np.allclose(kernel.T_Z[centre], [2.0, 0.0])
+    coeffs = Coefficients.zeros(kernel)
+    coeffs = coeffs._replace(alpha_Z=coeffs.alpha_Z.at[0, centre].set(0.5))
+    compression = 2.0 * kernel.deformation_scale
+    xi = jnp.array([0.0, 0.0, -RIG.axial_clearance - compression, 0.0, 0.0, 0.0, 0.0])
+    others = np.delete(np.asarray(kernel.T_Z), centre, axis=0)
+    q_others = np.exp(-np.sum((others - np.array([2.0, 0.0])) ** 2, axis=1) / (2 * kernel.width**2))
+    assert np.all(q_others < 0.61)  # the chosen centre dominates
+    k_Z = NOMINAL.k_Z * (1 + 0.5 * 1.0)
+    np.testing.assert_allclose(float(contact_forces(make_model(coeffs), xi).F_z), k_Z * compression, rtol=1e-12)
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_ad_jacobian_matches_central_differences(case):
     model = make_model(random_coeffs(1))

@@ -40,7 +40,7 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     axial_contact = axial_deformation > 0.0  # eq. 7 criterion z >= -z0 is "no contact"
 
     k_R, c_R, mu = radial_parameters(model.kernel, model.nominal, model.coeffs, radial_deformation, rdot)
-    k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, z + rig.axial_clearance, zdot)
+    k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, axial_deformation, zdot)
 
     F_nR = jnp.where(radial_contact, k_R * radial_deformation + c_R * rdot, 0.0)  # eq. 6a
     F_tR = mu * F_nR  # eq. 6b

@@ -29,30 +29,25 @@ def _learned(f0: Array, Q: Array, alpha: Array) -> Array:
     return jnp.maximum(f0 * (1.0 + Q @ alpha), 0.0)
 
 
+def _parameters(kernel: Kernel, T: Array, nominal: tuple, alpha: Array, deformation: Array, velocity: Array):
+    Q = gaussian_kernel(normalise(kernel, deformation, velocity), T, kernel.width)
+    return tuple(_learned(f0, Q, a) for f0, a in zip(nominal, alpha))
+
+
 def radial_parameters(
     kernel: Kernel, nominal: Nominal, coeffs: Coefficients, deformation: Array, velocity: Array
 ) -> tuple[Array, Array, Array]:
     """k_R, c_R, mu at rho = (r - r0, rdot) (eq. 9a-c)."""
-    Q = gaussian_kernel(normalise(kernel, deformation, velocity), kernel.T_R, kernel.width)
-    alpha = coeffs.alpha_R
-    return (
-        _learned(nominal.k_R, Q, alpha[0]),
-        _learned(nominal.c_R, Q, alpha[1]),
-        _learned(nominal.mu, Q, alpha[2]),
-    )
+    f0 = (nominal.k_R, nominal.c_R, nominal.mu)
+    return _parameters(kernel, kernel.T_R, f0, coeffs.alpha_R, deformation, velocity)
 
 
 def axial_parameters(
     kernel: Kernel, nominal: Nominal, coeffs: Coefficients, deformation: Array, velocity: Array
 ) -> tuple[Array, Array, Array]:
-    """k_Z, c_Z, k_ZR at zeta = (z + z0, zdot) (eq. 9d-f)."""
-    Q = gaussian_kernel(normalise(kernel, deformation, velocity), kernel.T_Z, kernel.width)
-    alpha = coeffs.alpha_Z
-    return (
-        _learned(nominal.k_Z, Q, alpha[0]),
-        _learned(nominal.c_Z, Q, alpha[1]),
-        _learned(nominal.k_ZR, Q, alpha[2]),
-    )
+    """k_Z, c_Z, k_ZR at zeta (eq. 9d-f); deformation = -(z + z0), the compression, >= 0 in contact."""
+    f0 = (nominal.k_Z, nominal.c_Z, nominal.k_ZR)
+    return _parameters(kernel, kernel.T_Z, f0, coeffs.alpha_Z, deformation, velocity)
 
 
 def gram(kernel: Kernel) -> tuple[Array, Array]:

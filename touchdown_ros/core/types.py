@@ -39,10 +39,12 @@ class Nominal(NamedTuple):
 
 
 class Kernel(NamedTuple):
-    """PKBKR kernel: Gaussian Q on normalised rho = (r - r0, rdot) and zeta = (z + z0, zdot).
+    """PKBKR kernel: Gaussian Q on normalised rho = (r - r0, rdot) and zeta = (-(z + z0), zdot).
 
-    Centres are given in the same normalised coordinates as the kernel inputs:
-    deformation / deformation_scale and velocity / velocity_scale.
+    zeta's first component is the axial compression -(z + z0) (the paper's z + z0 with
+    its sign turned), so both deformations are >= 0 in contact and both centre grids
+    read as deformation >= 0. Centres are in the normalised coordinates of the kernel
+    inputs: deformation / deformation_scale and velocity / velocity_scale.
     """
 
     T_R: Array  # (m_R, 2) radial centre set
