@@ -1,26 +1,36 @@
 """rosbag2 (MCAP storage) reading, validation and atomic writing of the package's topics.
 
 Reads rosbag2 directories (metadata.yaml + .mcap) and bare .mcap files with rosbags'
-AnyReader; writes rosbag2 directories in MCAP storage. No ROS installation needed.
+AnyReader; writes rosbag2 directories in MCAP storage (or a bare .mcap file when the
+target ends in .mcap). Messages of the standard layout are decoded and encoded as whole
+numpy arrays (`touchdown_ros.io.cdr`), bit-identical to rosbags' per-message serde, which
+is the fallback. No ROS installation needed; nothing here imports rclpy.
+
+Every problem with an input bag raises `BagError` (a ValueError) naming the file.
 """
 from __future__ import annotations
 
+import ctypes
+import errno
+import functools
 import os
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from touchdown_ros.io import cdr
+
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
 
-#: Short message names this module writes, and where their 3-vector lives.
+#: Short message names this module writes and reads (all hold a stamped 3-vector).
 MESSAGE_TYPES = {
     "PointStamped": "geometry_msgs/msg/PointStamped",
     "Vector3Stamped": "geometry_msgs/msg/Vector3Stamped",
@@ -28,8 +38,13 @@ MESSAGE_TYPES = {
     "TwistWithCovarianceStamped": "geometry_msgs/msg/TwistWithCovarianceStamped",
     "AccelWithCovarianceStamped": "geometry_msgs/msg/AccelWithCovarianceStamped",
 }
+COVARIANCE_TYPES = frozenset({MESSAGE_TYPES["TwistWithCovarianceStamped"], MESSAGE_TYPES["AccelWithCovarianceStamped"]})
 DISPLACEMENT_TYPE = MESSAGE_TYPES["PointStamped"]
-#: |displacement| above this is not metres of a rotor in a ~0.25 mm clearance: millimetres.
+DISPLACEMENT_TOPIC = "/amb/displacement"
+TRUTH_VELOCITY_TOPIC = "/truth/velocity"
+TRUTH_ACCELERATION_TOPIC = "/truth/acceleration"
+TRUTH_CONTACT_FORCE_TOPIC = "/truth/contact_force"
+#: |displacement| above this (m) is not a rotor in a ~0.25 mm clearance: the bag is in millimetres.
 MILLIMETRE_LIMIT = 0.01
 
 
@@ -43,7 +58,7 @@ class DisplacementSeries:
 
     path: Path
     topic: str
-    frame_id: str
+    frame_id: str  # of the first message
     stamps_ns: np.ndarray  # (N,) int64, header.stamp
     xyz: np.ndarray  # (N, 3) float64, m
 
@@ -53,162 +68,266 @@ class VectorSeries:
     """A stamped 3-vector topic (point, vector, force, linear twist or acceleration)."""
 
     topic: str
-    msgtype: str
-    stamps_ns: np.ndarray  # (N,) int64
-    values: np.ndarray  # (N, 3)
-    covariance: np.ndarray | None  # (N, 3, 3) linear block, for *WithCovarianceStamped
+    msgtype: str  # full name, e.g. geometry_msgs/msg/PointStamped
+    stamps_ns: np.ndarray  # (N,) int64, header.stamp
+    values: np.ndarray  # (N, 3) float64
+    covariance: np.ndarray | None  # (N, 3, 3) linear block, *WithCovarianceStamped only
+    frame_id: str = ""  # of the first message
 
 
 @dataclass(frozen=True)
 class Truth:
-    """Truth topics of a simulated bag, on the velocity topic's stamps."""
+    """Truth topics of a simulated bag, on common stamps (rows without truth are NaN)."""
 
     stamps_ns: np.ndarray  # (N,) int64
     velocity: np.ndarray  # (N, 3) m/s
     acceleration: np.ndarray  # (N, 3) m/s^2
-    contact_force: np.ndarray  # (N, 3) N
+    contact_force: np.ndarray  # (N, 3) N, sensor x/y/z
 
 
 @dataclass(frozen=True)
 class TopicSeries:
-    """A topic to write: one message per row."""
+    """A topic to write: one message per row, header.stamp = log time = stamps_ns."""
 
     topic: str
-    msgtype: str  # a key of MESSAGE_TYPES
+    msgtype: str  # a key of MESSAGE_TYPES (or its full name)
     stamps_ns: np.ndarray  # (N,) int64
     values: np.ndarray  # (N, 3)
-    covariance: np.ndarray | None = None  # (N, 3, 3), *WithCovarianceStamped only
+    covariance: np.ndarray | None = None  # (N, 3, 3) linear block, *WithCovarianceStamped only
     frame_id: str = ""
 
 
-def _stamp_ns(header: Any) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+# ------------------------------------------------------------------------------------------------ reading
 
 
-def _vector_of(msg: Any, msgtype: str) -> tuple[Any, np.ndarray | None]:
-    if msgtype == MESSAGE_TYPES["PointStamped"]:
-        return msg.point, None
-    if msgtype == MESSAGE_TYPES["Vector3Stamped"]:
-        return msg.vector, None
-    if msgtype == MESSAGE_TYPES["WrenchStamped"]:
-        return msg.wrench.force, None
-    if msgtype == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
-        return msg.twist.twist.linear, np.asarray(msg.twist.covariance).reshape(6, 6)[:3, :3]
-    if msgtype == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
-        return msg.accel.accel.linear, np.asarray(msg.accel.covariance).reshape(6, 6)[:3, :3]
-    raise BagError(f"message type {msgtype} is not a stamped 3-vector this package reads")
+def _full_type(msgtype: str) -> str:
+    return MESSAGE_TYPES.get(msgtype, msgtype)
 
 
-def _read_topic(path: Path, topic: str, expected_type: str | None) -> tuple[str, list[tuple[str, Any]]] | None:
-    """(msgtype, [(frame_id, message)]) of one topic; None when the bag has no such topic."""
+def _existing(path: str | Path) -> Path:
+    path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such bag (file or directory)")
+    return path
+
+
+def _unreadable(path: Path, error: Exception) -> BagError:
+    return BagError(
+        f"{path}: cannot read bag (not a rosbag2/MCAP bag, or truncated or corrupt): {type(error).__name__}: {error}"
+    )
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * cdr.NS_PER_S + int(header.stamp.nanosec)
+
+
+def _float64_block(msg: Any, msgtype: str) -> list[float]:
+    """The float64 fields after the header, in CDR order (what `cdr.decode` returns)."""
+    def xyz(v: Any) -> list[float]:
+        return [v.x, v.y, v.z]
+
+    if msgtype == MESSAGE_TYPES["PointStamped"]:
+        return xyz(msg.point)
+    if msgtype == MESSAGE_TYPES["Vector3Stamped"]:
+        return xyz(msg.vector)
+    if msgtype == MESSAGE_TYPES["WrenchStamped"]:
+        return xyz(msg.wrench.force) + xyz(msg.wrench.torque)
+    if msgtype == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
+        t = msg.twist
+        return xyz(t.twist.linear) + xyz(t.twist.angular) + list(np.asarray(t.covariance, dtype=np.float64))
+    if msgtype == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
+        a = msg.accel
+        return xyz(a.accel.linear) + xyz(a.accel.angular) + list(np.asarray(a.covariance, dtype=np.float64))
+    raise AssertionError(msgtype)
+
+
+def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any) -> VectorSeries:
+    """VectorSeries of a topic's raw CDR messages: whole-array fast path, else rosbags per message."""
+    k = cdr.FLOAT64_COUNT[msgtype]
+    frame_id = ""
+    decoded = None
+    if raws:
+        first = store.deserialize_cdr(raws[0], msgtype)  # also proves the common layout is valid
+        frame_id = first.header.frame_id
+        if store.hash_rihs01(msgtype) == TYPESTORE.hash_rihs01(msgtype):  # standard definition in the bag
+            decoded = cdr.decode(raws, k)
+    if decoded is not None:
+        stamps, block = decoded
+    else:
+        messages = [store.deserialize_cdr(raw, msgtype) for raw in raws]
+        stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
+        block = np.array([_float64_block(m, msgtype) for m in messages], dtype=np.float64).reshape(-1, k)
+    covariance = block[:, 6:].reshape(-1, 6, 6)[:, :3, :3].copy() if msgtype in COVARIANCE_TYPES else None
+    return VectorSeries(topic, msgtype, stamps, np.ascontiguousarray(block[:, :3]), covariance, frame_id)
+
+
+def _read_topics(
+    path: str | Path, topics: Iterable[str], expected: dict[str, str] | None = None
+) -> tuple[dict[str, str], dict[str, VectorSeries]]:
+    """(every topic -> type, the wanted topics present in the bag), in one pass over the bag.
+
+    expected maps a topic to the only full type accepted for it; otherwise any MESSAGE_TYPES type.
+    """
+    path = _existing(path)
+    wanted, expected = set(topics), expected or {}
     try:
         with AnyReader([path], default_typestore=TYPESTORE) as reader:
-            connections = [c for c in reader.connections if c.topic == topic]
-            if not connections:
-                return None
-            msgtype = connections[0].msgtype
-            if expected_type is not None and msgtype != expected_type:
-                raise BagError(f"{path}: topic {topic} has type {msgtype}, expected {expected_type}")
-            messages = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=connections)]
+            available: dict[str, set[str]] = {}
+            for c in reader.connections:
+                available.setdefault(c.topic, set()).add(c.msgtype)
+            for topic in wanted & available.keys():
+                _check_topic_type(path, topic, available[topic], expected.get(topic))
+            connections = [c for c in reader.connections if c.topic in wanted]
+            for c in connections:
+                if (encoding := getattr(c.ext, "serialization_format", "ros1")) != "cdr":
+                    raise BagError(f"{path}: topic {c.topic} is serialised as {encoding}, not cdr (ROS 2)")
+            raws: dict[str, list[bytes]] = {c.topic: [] for c in connections}
+            if connections:  # AnyReader.messages(connections=[]) would yield every message of the bag
+                for connection, _, raw in reader.messages(connections=connections):
+                    raws[connection.topic].append(raw)
+            found = {t: _decode_topic(t, next(iter(available[t])), r, reader.typestore) for t, r in raws.items()}
     except BagError:
         raise
-    except Exception as error:  # rosbags/mcap raise many types for truncated or corrupt files
-        raise BagError(f"{path}: cannot read bag (truncated or corrupt?): {type(error).__name__}: {error}") from None
-    return msgtype, messages
+    except Exception as error:  # rosbags/mcap/lz4/yaml raise many types for corrupt or truncated files
+        raise _unreadable(path, error) from error
+    return {t: ", ".join(sorted(m)) for t, m in sorted(available.items())}, found
+
+
+def _check_topic_type(path: Path, topic: str, msgtypes: set[str], expected: str | None) -> None:
+    if len(msgtypes) > 1:
+        raise BagError(f"{path}: topic {topic} carries several message types: {', '.join(sorted(msgtypes))}")
+    (msgtype,) = msgtypes
+    if expected is not None and msgtype != expected:
+        raise BagError(f"{path}: topic {topic} has type {msgtype}, expected {expected}")
+    if msgtype not in cdr.FLOAT64_COUNT:
+        raise BagError(
+            f"{path}: topic {topic} has type {msgtype}, not a stamped 3-vector type this package reads "
+            f"({', '.join(MESSAGE_TYPES.values())})"
+        )
 
 
 def list_topics(path: str | Path) -> dict[str, str]:
-    """Topic name -> message type of a bag."""
-    path = Path(path)
-    try:
-        with AnyReader([path], default_typestore=TYPESTORE) as reader:
-            return {c.topic: c.msgtype for c in reader.connections}
-    except Exception as error:
-        raise BagError(f"{path}: cannot read bag (truncated or corrupt?): {type(error).__name__}: {error}") from None
+    """Topic name -> message type of a bag (types joined by ', ' if a topic has several)."""
+    return _read_topics(path, ())[0]
 
 
-def read_displacement(path: str | Path, topic: str = "/amb/displacement", validate: bool = True) -> DisplacementSeries:
-    """The displacement topic (PointStamped, m), validated unless validate=False."""
+def _missing_topic(path: Path, topic: str, available: dict[str, str]) -> BagError:
+    there = ", ".join(f"{t} ({m})" for t, m in available.items()) or "no topics at all"
+    return BagError(f"{path}: no topic {topic}; the bag has: {there}")
+
+
+def read_displacement(path: str | Path, topic: str = DISPLACEMENT_TOPIC, validate: bool = True) -> DisplacementSeries:
+    """The displacement topic (PointStamped, m, header.stamp = sample time).
+
+    Raises BagError for an unreadable bag, a missing topic or a wrong type; with validate=True
+    also for the problems of `displacement_problems` (validate=False: call it yourself).
+    """
     path = Path(path)
-    found = _read_topic(path, topic, DISPLACEMENT_TYPE)
-    if found is None:
-        topics = ", ".join(f"{t} ({m})" for t, m in list_topics(path).items()) or "none"
-        raise BagError(f"{path}: no topic {topic}; the bag has: {topics}")
-    _, messages = found
-    if not messages:
-        raise BagError(f"{path}: topic {topic} has no messages")
-    stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
-    xyz = np.array([[m.point.x, m.point.y, m.point.z] for m in messages], dtype=np.float64)
-    series = DisplacementSeries(path, topic, messages[0].header.frame_id, stamps, xyz)
+    available, found = _read_topics(path, [topic], {topic: DISPLACEMENT_TYPE})
+    if topic not in found:
+        raise _missing_topic(path, topic, available)
+    v = found[topic]
+    series = DisplacementSeries(path, topic, v.frame_id, v.stamps_ns, v.values)
     if validate:
-        problems = displacement_problems(series)
-        if problems:
-            raise BagError(f"{path}: topic {topic}: " + "; ".join(problems))
+        validate_displacement(series)
     return series
 
 
-def displacement_problems(series: DisplacementSeries) -> list[str]:
-    """What makes a displacement series unusable: non-finite values, stamps out of order, mm."""
+def displacement_problems(series: DisplacementSeries, limit: float = MILLIMETRE_LIMIT) -> list[str]:
+    """What makes a displacement series unusable (empty): no samples, NaN/inf, header stamps not
+    strictly increasing, values in millimetres. Each names how many and the first index."""
+    stamps, xyz = series.stamps_ns, series.xyz
+    if len(stamps) == 0:
+        return ["no messages (empty topic)"]
     problems = []
-    finite = np.isfinite(series.xyz).all(axis=1)
+    finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
         first = int(np.argmin(finite))
         problems.append(
-            f"{int((~finite).sum())} sample(s) with NaN or inf, first at index {first} (stamp {series.stamps_ns[first]} ns)"
+            f"{int((~finite).sum())} sample(s) with NaN or inf, first at index {first} (stamp {stamps[first]} ns)"
         )
-    steps = np.diff(series.stamps_ns)
+    steps = np.diff(stamps)
     if (steps <= 0).any():
         first = int(np.argmax(steps <= 0)) + 1
-        kind = "duplicate" if steps[first - 1] == 0 else "decreasing"
         problems.append(
-            f"header stamps not increasing: {int((steps <= 0).sum())} {kind} or out-of-order stamp(s), "
-            f"first at index {first} (stamp {series.stamps_ns[first]} ns)"
+            f"header stamps not strictly increasing: {int((steps == 0).sum())} duplicate and "
+            f"{int((steps < 0).sum())} decreasing, first at index {first} "
+            f"(stamp {stamps[first]} ns after {stamps[first - 1]} ns)"
         )
-    largest = float(np.nanmax(np.abs(np.where(np.isfinite(series.xyz), series.xyz, 0.0)))) if len(series.xyz) else 0.0
-    if largest > MILLIMETRE_LIMIT:
+    large = np.abs(np.where(np.isfinite(xyz), xyz, 0.0)) > limit
+    if large.any():
+        rows = large.any(axis=1)
+        first = int(np.argmax(rows))
+        largest = float(np.max(np.abs(xyz[np.isfinite(xyz)])))
         problems.append(
-            f"displacements up to {largest:g} look like millimetres, not metres (limit {MILLIMETRE_LIMIT} m): "
-            "convert the recording to SI units"
+            f"{int(rows.sum())} sample(s) beyond {limit:g} m (largest {largest:g}, first at index {first}): "
+            "looks like millimetres, not metres; convert the recording to SI units"
         )
     return problems
 
 
-def read_vector_topic(path: str | Path, topic: str) -> VectorSeries | None:
-    """A stamped 3-vector topic of a bag; None when the bag does not have it."""
-    path = Path(path)
-    found = _read_topic(path, topic, None)
-    if found is None:
-        return None
-    msgtype, messages = found
-    vectors = [_vector_of(m, msgtype) for m in messages]
-    stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
-    values = np.array([[v.x, v.y, v.z] for v, _ in vectors], dtype=np.float64).reshape(-1, 3)
-    covariance = np.array([c for _, c in vectors]) if vectors and vectors[0][1] is not None else None
-    return VectorSeries(topic, msgtype, stamps, values, covariance)
+def validate_displacement(series: DisplacementSeries, limit: float = MILLIMETRE_LIMIT) -> None:
+    """Raise BagError naming the file, the topic and every problem of `displacement_problems`."""
+    problems = displacement_problems(series, limit)
+    if problems:
+        raise BagError(f"{series.path}: topic {series.topic}: " + "; ".join(problems))
+
+
+def read_vector_topic(path: str | Path, topic: str, msgtype: str | None = None) -> VectorSeries | None:
+    """A stamped 3-vector topic of a bag (any of MESSAGE_TYPES, or only msgtype); None when absent."""
+    expected = {topic: _full_type(msgtype)} if msgtype else None
+    return _read_topics(path, [topic], expected)[1].get(topic)
 
 
 def read_truth(
     path: str | Path,
-    velocity_topic: str = "/truth/velocity",
-    acceleration_topic: str = "/truth/acceleration",
-    contact_force_topic: str = "/truth/contact_force",
+    velocity_topic: str = TRUTH_VELOCITY_TOPIC,
+    acceleration_topic: str = TRUTH_ACCELERATION_TOPIC,
+    contact_force_topic: str = TRUTH_CONTACT_FORCE_TOPIC,
+    stamps_ns: np.ndarray | None = None,
 ) -> Truth | None:
-    """The truth topics of a simulated bag; None when it has none (a real drop test)."""
-    velocity = read_vector_topic(path, velocity_topic)
-    if velocity is None:
+    """The truth topics of a simulated bag; None when it has none (a real drop test).
+
+    The three topics must share their stamps. With stamps_ns (e.g. the displacement stamps) the
+    truth is returned on those stamps, NaN where it has no sample with that exact stamp.
+    """
+    path = Path(path)
+    kinds = {velocity_topic: "Vector3Stamped", acceleration_topic: "Vector3Stamped", contact_force_topic: "WrenchStamped"}
+    _, found = _read_topics(path, kinds, {t: MESSAGE_TYPES[k] for t, k in kinds.items()})
+    if not found:
         return None
-    acceleration = read_vector_topic(path, acceleration_topic)
-    force = read_vector_topic(path, contact_force_topic)
+    if missing := [t for t in kinds if t not in found]:
+        raise BagError(f"{path}: truth topic(s) {', '.join(missing)} missing while {', '.join(found)} present")
+    velocity, acceleration, force = (found[t] for t in kinds)
     for name, series in ((acceleration_topic, acceleration), (contact_force_topic, force)):
-        if series is None or not np.array_equal(series.stamps_ns, velocity.stamps_ns):
-            raise BagError(f"{path}: truth topic {name} is missing or not on the stamps of {velocity_topic}")
-    return Truth(velocity.stamps_ns, velocity.values, acceleration.values, force.values)
+        if not np.array_equal(series.stamps_ns, velocity.stamps_ns):
+            raise BagError(f"{path}: truth topic {name} is not on the stamps of {velocity_topic}")
+    truth = Truth(velocity.stamps_ns, velocity.values, acceleration.values, force.values)
+    return truth if stamps_ns is None else align_truth(truth, stamps_ns)
+
+
+def align_truth(truth: Truth, stamps_ns: np.ndarray) -> Truth:
+    """truth on the given stamps: rows matched by exact stamp, NaN where truth has none."""
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    order = np.argsort(truth.stamps_ns, kind="stable")
+    sorted_stamps = truth.stamps_ns[order]
+    pos = np.minimum(np.searchsorted(sorted_stamps, stamps_ns), max(len(order) - 1, 0))
+    matched = (sorted_stamps[pos] == stamps_ns) if len(order) else np.zeros(len(stamps_ns), dtype=bool)
+    rows = order[pos] if len(order) else pos
+
+    def take(values: np.ndarray) -> np.ndarray:
+        out = np.full((len(stamps_ns), 3), np.nan)
+        out[matched] = values[rows[matched]]
+        return out
+
+    return Truth(stamps_ns, take(truth.velocity), take(truth.acceleration), take(truth.contact_force))
+
+
+# ------------------------------------------------------------------------------------------------ writing
 
 
 def _header(stamp_ns: int, frame_id: str) -> Any:
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = divmod(int(stamp_ns), cdr.NS_PER_S)
     return _T["std_msgs/msg/Header"](stamp=_T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
 
 
@@ -220,68 +339,182 @@ def _covariance6(block: np.ndarray | None) -> np.ndarray:
 
 
 def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.ndarray | None, frame_id: str) -> Any:
-    """One message of a MESSAGE_TYPES kind holding value (3,) (and its 3x3 covariance)."""
+    """One rosbags message of a MESSAGE_TYPES kind holding value (3,) (and its 3x3 covariance)."""
     header = _header(stamp_ns, frame_id)
     x, y, z = (float(v) for v in value)
     Vector3, zero = _T["geometry_msgs/msg/Vector3"], _T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    if msgtype == "PointStamped":
-        return _T[MESSAGE_TYPES[msgtype]](header=header, point=_T["geometry_msgs/msg/Point"](x=x, y=y, z=z))
-    if msgtype == "Vector3Stamped":
-        return _T[MESSAGE_TYPES[msgtype]](header=header, vector=Vector3(x=x, y=y, z=z))
-    if msgtype == "WrenchStamped":
-        wrench = _T["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero)
-        return _T[MESSAGE_TYPES[msgtype]](header=header, wrench=wrench)
-    if msgtype == "TwistWithCovarianceStamped":
+    full = _full_type(msgtype)
+    if full == MESSAGE_TYPES["PointStamped"]:
+        return _T[full](header=header, point=_T["geometry_msgs/msg/Point"](x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["Vector3Stamped"]:
+        return _T[full](header=header, vector=Vector3(x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["WrenchStamped"]:
+        return _T[full](header=header, wrench=_T["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero))
+    if full == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
         twist = _T["geometry_msgs/msg/Twist"](linear=Vector3(x=x, y=y, z=z), angular=zero)
         body = _T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_covariance6(covariance))
-        return _T[MESSAGE_TYPES[msgtype]](header=header, twist=body)
-    if msgtype == "AccelWithCovarianceStamped":
+        return _T[full](header=header, twist=body)
+    if full == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
         accel = _T["geometry_msgs/msg/Accel"](linear=Vector3(x=x, y=y, z=z), angular=zero)
         body = _T["geometry_msgs/msg/AccelWithCovariance"](accel=accel, covariance=_covariance6(covariance))
-        return _T[MESSAGE_TYPES[msgtype]](header=header, accel=body)
+        return _T[full](header=header, accel=body)
     raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
 
 
-def _check(series: TopicSeries) -> None:
-    n = len(series.stamps_ns)
-    if series.msgtype not in MESSAGE_TYPES:
-        raise ValueError(f"{series.topic}: cannot write message type {series.msgtype!r}")
+def _float64_rows(series: TopicSeries, msgtype: str) -> np.ndarray:
+    """(N, k) float64 fields after the header, as `make_message` fills them."""
+    values = np.asarray(series.values, dtype=np.float64)
+    n = len(values)
+    if msgtype in (MESSAGE_TYPES["PointStamped"], MESSAGE_TYPES["Vector3Stamped"]):
+        return values
+    if msgtype == MESSAGE_TYPES["WrenchStamped"]:
+        return np.concatenate([values, np.zeros((n, 3))], axis=1)
+    covariance = np.zeros((n, 6, 6))
+    if series.covariance is not None:
+        covariance[:, :3, :3] = np.asarray(series.covariance, dtype=np.float64)
+    return np.concatenate([values, np.zeros((n, 3)), covariance.reshape(n, 36)], axis=1)
+
+
+def encode_series(series: TopicSeries) -> np.ndarray:
+    """(N, size) uint8: the CDR messages of a topic, row i = message i (checks the series first)."""
+    check_series(series)
+    msgtype = _full_type(series.msgtype)
+    return cdr.encode(np.asarray(series.stamps_ns, dtype=np.int64), _float64_rows(series, msgtype), series.frame_id)
+
+
+def check_series(series: TopicSeries) -> None:
+    """Raise ValueError unless the series can be written as it says."""
+    where = f"topic {series.topic}"
+    msgtype = _full_type(series.msgtype)
+    if msgtype not in cdr.FLOAT64_COUNT:
+        raise ValueError(f"{where}: cannot write message type {series.msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
+    stamps = np.asarray(series.stamps_ns)
+    if stamps.ndim != 1 or not (stamps.dtype.kind in "iu" or stamps.size == 0):
+        raise ValueError(f"{where}: stamps_ns must be a 1-D integer array (ns), got {stamps.dtype} {stamps.shape}")
+    n = len(stamps)
     if np.shape(series.values) != (n, 3):
-        raise ValueError(f"{series.topic}: {n} stamps but values of shape {np.shape(series.values)}")
-    if series.covariance is not None and np.shape(series.covariance) != (n, 3, 3):
-        raise ValueError(f"{series.topic}: covariance must be ({n}, 3, 3), got {np.shape(series.covariance)}")
+        raise ValueError(f"{where}: {n} stamps but values of shape {np.shape(series.values)}")
+    if series.covariance is not None:
+        if msgtype not in COVARIANCE_TYPES:
+            raise ValueError(f"{where}: a covariance is given but {msgtype} has none")
+        if np.shape(series.covariance) != (n, 3, 3):
+            raise ValueError(f"{where}: covariance must be ({n}, 3, 3), got {np.shape(series.covariance)}")
+    if n and (stamps.min() < 0 or stamps.max() >= 2**31 * cdr.NS_PER_S):
+        raise ValueError(f"{where}: stamps must lie in [0, 2^31 s) ns (log times are unsigned, seconds int32)")
+
+
+def _write_messages(target: Path, series: Sequence[TopicSeries], encoded: Sequence[np.ndarray]) -> None:
+    """A rosbag2 MCAP directory at target (which must not exist), messages of all topics in stamp order."""
+    stamps = [np.asarray(s.stamps_ns, dtype=np.int64) for s in series]
+    all_stamps = np.concatenate(stamps) if stamps else np.zeros(0, dtype=np.int64)
+    topic_of = np.concatenate([np.full(len(s), t) for t, s in enumerate(stamps)]) if stamps else np.zeros(0, int)
+    row_of = np.concatenate([np.arange(len(s)) for s in stamps]) if stamps else np.zeros(0, int)
+    order = np.lexsort((row_of, topic_of, all_stamps))
+    blobs = [memoryview(rows.tobytes()) for rows in encoded]
+    sizes = [rows.shape[1] for rows in encoded]
+    with Writer(target, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connections = [writer.add_connection(s.topic, _full_type(s.msgtype), typestore=TYPESTORE) for s in series]
+        for stamp, t, row in zip(all_stamps[order].tolist(), topic_of[order].tolist(), row_of[order].tolist()):
+            size = sizes[t]
+            writer.write(connections[t], stamp, blobs[t][row * size : (row + 1) * size])
 
 
 def write_bag(path: str | Path, series: Sequence[TopicSeries], overwrite: bool = False) -> Path:
-    """Write topics to a rosbag2 directory in MCAP storage, messages in stamp order.
+    """Write topics to a rosbag2 directory in MCAP storage (a bare MCAP file if path ends in .mcap).
 
-    Atomic: the bag is written into a temporary sibling directory and renamed into place,
+    Messages of all topics are interleaved in stamp order (ties: the order of `series`).
+    Atomic: written into a temporary sibling directory, flushed to disk and renamed into place,
     so a failed or interrupted write leaves nothing at path (or the old bag, when overwriting).
+    Raises FileExistsError if path exists (unless overwrite, and then only if it is a bag).
     """
     path = Path(path)
-    for s in series:
-        _check(s)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; refusing to overwrite it")
+    topics = [s.topic for s in series]
+    if len(set(topics)) != len(topics):
+        raise ValueError(f"{path}: a topic is given twice: {topics}")
+    encoded = [encode_series(s) for s in series]
+    _check_target(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    bare = path.suffix == ".mcap"
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
-        staged = staging / path.name
-        order = sorted(
-            ((int(stamp), t, row) for t, s in enumerate(series) for row, stamp in enumerate(s.stamps_ns)),
-            key=lambda item: (item[0], item[1]),
-        )
-        with Writer(staged, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-            connections = [writer.add_connection(s.topic, MESSAGE_TYPES[s.msgtype], typestore=TYPESTORE) for s in series]
-            for stamp, t, row in order:
-                s = series[t]
-                covariance = None if s.covariance is None else s.covariance[row]
-                message = make_message(s.msgtype, stamp, s.values[row], covariance, s.frame_id)
-                writer.write(connections[t], stamp, TYPESTORE.serialize_cdr(message, MESSAGE_TYPES[s.msgtype]))
-        if path.exists():
-            trash = staging / ".replaced"
-            os.replace(path, trash)
-        os.replace(staged, path)
+        bag = staging / (path.stem if bare else path.name)
+        _write_messages(bag, series, encoded)
+        built = bag / f"{bag.name}.mcap" if bare else bag
+        _fsync_tree(built)
+        _install(built, path, overwrite)
+        _fsync(path.parent)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return path
+
+
+def _is_bag(path: Path) -> bool:
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file() or not any(path.iterdir())
+    return path.suffix == ".mcap"
+
+
+def _check_target(path: Path, overwrite: bool) -> None:
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{path} exists; refusing to overwrite it (pass overwrite)")
+    if path.is_symlink() or not _is_bag(path):
+        raise FileExistsError(f"{path} exists and is not a rosbag2 directory or .mcap file; refusing to replace it")
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(path: Path) -> None:
+    for item in sorted(path.rglob("*")) if path.is_dir() else []:
+        _fsync(item)
+    _fsync(path)
+
+
+_RENAME_NOREPLACE, _RENAME_EXCHANGE, _AT_FDCWD = 1, 2, -100
+
+
+@functools.lru_cache(maxsize=1)
+def _renameat2_function() -> Any:
+    return getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+
+
+def _renameat2(src: Path, dst: Path, flags: int) -> bool:
+    """Linux renameat2(2); False when the C library or the file system does not support it."""
+    function = _renameat2_function()
+    if function is None:
+        return False
+    if function(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), flags) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
+        return False
+    if code == errno.EEXIST:
+        raise FileExistsError(code, f"{dst} appeared while writing; refusing to overwrite it", str(dst))
+    raise OSError(code, os.strerror(code), str(dst))
+
+
+def _install(built: Path, path: Path, overwrite: bool) -> None:
+    """Move built to path; an existing bag is swapped out in one step where the OS allows
+    (renameat2 RENAME_EXCHANGE) and left at built, inside the staging directory."""
+    if not (path.exists() or path.is_symlink()):
+        if not _renameat2(built, path, _RENAME_NOREPLACE):
+            if path.exists():
+                raise FileExistsError(f"{path} appeared while writing; refusing to overwrite it")
+            os.rename(built, path)
+        return
+    _check_target(path, overwrite)
+    if not _renameat2(built, path, _RENAME_EXCHANGE):
+        old = built.with_name(built.name + ".replaced")
+        os.rename(path, old)
+        try:
+            os.rename(built, path)
+        except BaseException:
+            os.rename(old, path)  # put the old bag back before the staging directory is removed
+            raise
