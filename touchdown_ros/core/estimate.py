@@ -129,6 +129,8 @@ def signals(model: Model, states: Belief) -> SignalSet:
 
 
 Estimator = Callable[..., Estimate]
+#: Records are padded to a multiple of this many samples before filtering (fewer compilations).
+PAD_BUCKET = 512
 
 
 def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Estimator:
@@ -166,11 +168,17 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on."""
         stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
         initial = initial_belief(etas, np.asarray(noise.initial))
+        n = len(etas)
+        # Pad to a bucketed length so records of similar length share one compilation;
+        # the NaN rows come after the record (predict-only) and are cut off again.
+        padded = np.full((-(-n // PAD_BUCKET) * PAD_BUCKET, 3), np.nan)
+        padded[:n] = etas
         if coeffs is None:
-            outputs = run_folded(initial, jnp.asarray(etas))
+            outputs = run_folded(initial, jnp.asarray(padded))
         else:
-            outputs = run_with_coeffs(coeffs, initial, jnp.asarray(etas))
-        filtered, smoothed, predicted, innovation, innovation_cov, nis = jax.device_get(outputs)
+            outputs = run_with_coeffs(coeffs, initial, jnp.asarray(padded))
+        trimmed = jax.tree.map(lambda a: a[:n], jax.device_get(outputs))
+        filtered, smoothed, predicted, innovation, innovation_cov, nis = trimmed
         return Estimate(
             stamps_ns=stamps_ns,
             measured=etas,
