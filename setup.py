@@ -33,6 +33,7 @@ setup(
     entry_points={
         "console_scripts": [
             "touchdown = touchdown_ros.cli:main",
+            "touchdown_estimator = touchdown_ros.ros.node:main",
         ],
     },
 )

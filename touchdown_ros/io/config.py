@@ -57,14 +57,15 @@ class NodeSettings:
     coefficients: str = ""  # PKBKR coefficient file; empty: the constant model
     executor: str = "events"  # events (rclpy EventsExecutor) | single (SingleThreadedExecutor)
     input_reliability: str = "best_effort"  # QoS of the displacement subscriptions
-    input_depth: int = 1000  # keep-last history depth of the input subscriptions
+    input_depth: int = 10000  # keep-last history depth of the input subscriptions (1 s at 10 kHz)
     batch_topic: str = "/amb/displacement_batch"  # sensor_msgs/PointCloud2 with fields t, x, y, z
     output_mode: str = "per_sample"  # per_sample (the /touchdown/* topics) | batch | both
     batch_output_topic: str = "/touchdown/estimate_batch"  # PointCloud2, one message per EKF run
     output_reliability: str = "reliable"
-    output_depth: int = 1000
-    flush_period: float = 0.001  # s between timer runs of the EKF on the pending samples
+    output_depth: int = 10000  # keep-last depth of the output publishers (1 s at 10 kHz)
+    flush_period: float = 0.002  # s between timer runs of the EKF on the pending samples
     flush_samples: int = 16  # pending samples that run the EKF at once (without waiting for the timer)
+    worker: bool = True  # run the EKF in a worker thread, receiving continues meanwhile
     chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
     diagnostics_period: float = 1.0  # s
     alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
@@ -210,6 +211,12 @@ class _Reader:
             raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
         return value
 
+    def flag(self, key: str, default: bool) -> bool:
+        value = self._get(key, default)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{self.source}: parameter '{key}' must be true or false, got {value!r}")
+        return value
+
     def choice(self, key: str, default: str, allowed: tuple[str, ...]) -> str:
         value = self.text(key, default)
         if value not in allowed:
@@ -310,6 +317,7 @@ def _node_settings(read: _Reader) -> NodeSettings:
         output_depth=read.integer("node.output_depth", d.output_depth),
         flush_period=read.number("node.flush_period", d.flush_period, positive=True),
         flush_samples=read.integer("node.flush_samples", d.flush_samples),
+        worker=read.flag("node.worker", d.worker),
         chunk_sizes=read.integers("node.chunk_sizes", d.chunk_sizes),
         diagnostics_period=read.number("node.diagnostics_period", d.diagnostics_period, positive=True),
         alarm_force=read.number("node.alarm_force", d.alarm_force, positive=True),

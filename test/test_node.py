@@ -1,0 +1,385 @@
+"""The live node and the replayer over real DDS: separate processes on loopback, one ROS_DOMAIN_ID per test.
+
+Nothing of rclpy is mocked. The node runs as `python -m touchdown_ros.ros.node`,
+the replayer as `python -m touchdown_ros.ros.replay`; the test process joins the
+same domain with its own rclpy context to publish crafted input and to read
+/diagnostics. Every wait is bounded.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PointStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import PointCloud2
+
+from touchdown_ros.core.types import Coefficients
+from touchdown_ros.io.bags import TopicSeries, read_vector_topic, write_bag
+from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
+from touchdown_ros.io.config import load_config, reference_rig_path
+from touchdown_ros.offline import estimate_bag, estimate_topics, estimator_for
+from touchdown_ros.ros import messages
+from touchdown_ros.ros.replay import pace
+
+from test_streaming import model_drop_record
+
+CONFIG = load_config()
+RIG = str(reference_rig_path())
+PERIOD_NS = int(round(CONFIG.sample_period * 1e9))
+NODE_START_TIMEOUT = 150.0  # s: imports + EKF compilation (cached by JAX after the first run)
+#: Fewer compiled chunk lengths than the default: the same code path, less compilation in tests.
+FAST_NODE = ["-p", "node.chunk_sizes:=[16,64,256]", "-p", "node.diagnostics_period:=0.5"]
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+INPUT = "touchdown_estimator: input"
+MODEL = "touchdown_estimator: model"
+CONTACT = "touchdown_estimator: contact"
+LAST = "touchdown_estimator: last touchdown"
+
+
+def domain(offset: int) -> int:
+    """A ROS_DOMAIN_ID for this test run (10..89), different per test."""
+    return 10 + (os.getpid() % 20) * 4 + offset
+
+
+def ros_env(domain_id: int) -> dict[str, str]:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+class NodeProcess:
+    """`touchdown_estimator` in its own process; stopped with SIGINT (then SIGKILL) on exit."""
+
+    def __init__(self, tmp_path: Path, domain_id: int, args: list[str]):
+        self.log_path = tmp_path / f"node_{domain_id}.log"
+        self.command = [sys.executable, "-m", "touchdown_ros.ros.node", *args]
+        self.env = ros_env(domain_id)
+
+    def __enter__(self) -> "NodeProcess":
+        self.log_file = open(self.log_path, "w")
+        self.process = subprocess.Popen(self.command, env=self.env, stdout=self.log_file, stderr=subprocess.STDOUT)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout=10)
+        self.log_file.close()
+
+    def log(self) -> str:
+        self.log_file.flush()
+        return self.log_path.read_text()
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+
+class Peer:
+    """The test's own participant: crafted input publishers and a /diagnostics listener."""
+
+    def __init__(self, domain_id: int):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("test_peer", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.latest: dict[str, dict] = {}  # status name -> {"level", "message", "values"}
+        self.history: list[dict] = []
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+        reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+        self.points = self.node.create_publisher(PointStamped, CONFIG.topics.displacement, reliable)
+        self.batches = self.node.create_publisher(PointCloud2, CONFIG.node.batch_topic, reliable)
+
+    def _on_diagnostics(self, message: DiagnosticArray) -> None:
+        for status in message.status:
+            entry = {"level": status.level, "message": status.message, "values": messages.status_values(status)}
+            self.latest[status.name] = entry
+            self.history.append({"name": status.name, **entry})
+
+    def wait_for(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
+            if predicate():
+                return True
+        return predicate()
+
+    def value(self, status: str, key: str) -> str | None:
+        return self.latest.get(status, {}).get("values", {}).get(key)
+
+    def count(self, key: str) -> int:
+        value = self.value(INPUT, key)
+        return -1 if value is None else int(value)
+
+    def wait_ready(self, node: NodeProcess) -> None:
+        ready = self.wait_for(lambda: MODEL in self.latest and self.points.get_subscription_count() > 0
+                              or not node.alive(), NODE_START_TIMEOUT)
+        assert ready and node.alive(), "node did not come up:\n" + node.log()
+        self.wait_for(lambda: False, 0.5)  # let matching settle before the first sample
+
+    def publish_points(self, stamps_ns: np.ndarray, xyz: np.ndarray, spacing: float | None = None) -> None:
+        """Raw PointStamped samples, paced in real time by their stamps, or `spacing` s apart."""
+        blobs = messages.encode_fixed(messages.FixedLayout("amb_sensor", 3), stamps_ns, xyz)
+        sent = [0]
+
+        def until(due: int) -> None:
+            for blob in blobs[sent[0] : due]:
+                self.points.publish(blob)
+            sent[0] = due
+
+        offsets = (np.asarray(stamps_ns) - stamps_ns[0]) / 1e9 if spacing is None else spacing * np.arange(len(blobs))
+        pace(offsets, until)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+    def __enter__(self) -> "Peer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@pytest.fixture(autouse=True)
+def loopback(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
+
+
+def drop_bag(path: Path) -> tuple[Path, str]:
+    """A drop-test bag: the simulator's experiment 11 when touchdown_ros.sim is there, else the model's own drop."""
+    try:
+        from touchdown_ros.offline import write_drop_bag
+        from touchdown_ros.sim.campaign import CAMPAIGN
+        from touchdown_ros.sim.simulator import simulate_drop
+    except ImportError:
+        stamps, measured = model_drop_record()
+        write_bag(path, [TopicSeries(CONFIG.topics.displacement, "PointStamped", stamps, measured,
+                                     frame_id=CONFIG.topics.frame_id)])
+        return path, "core model"
+    write_drop_bag(simulate_drop(CONFIG, CAMPAIGN[10], seed=11), CONFIG, path)
+    return path, "simulator experiment 11"
+
+
+def assert_close(actual: np.ndarray, expected: np.ndarray, what: str, rtol: float = 1e-9) -> None:
+    assert actual.shape == expected.shape, what
+    np.testing.assert_allclose(actual, expected, rtol=rtol, atol=rtol * np.max(np.abs(expected)), err_msg=what)
+
+
+# ---------------------------------------------------------------------------------------------- messages (no DDS)
+@pytest.mark.parametrize("frame_id", ["", "a", "amb_sensor", "frame_of_8"])
+def test_raw_messages_match_rclpy_serialisation(frame_id):
+    from geometry_msgs.msg import AccelWithCovarianceStamped, TwistWithCovarianceStamped, WrenchStamped
+
+    rng = np.random.default_rng(0)
+    stamps = np.array([1_700_000_000_123_456_789, 42], np.int64)
+    for name, cls in [("PointStamped", PointStamped), ("TwistWithCovarianceStamped", TwistWithCovarianceStamped),
+                      ("AccelWithCovarianceStamped", AccelWithCovarianceStamped), ("WrenchStamped", WrenchStamped)]:
+        count = messages.FLOAT64_FIELDS[name]
+        values = rng.standard_normal((2, count))
+        blobs = messages.encode_fixed(messages.FixedLayout(frame_id, count), stamps, values)
+        for blob, stamp, row in zip(blobs, stamps, values):
+            message = deserialize_message(blob, cls)
+            assert message.header.frame_id == frame_id
+            assert messages.stamp_ns_of(message.header.stamp) == stamp
+            again = serialize_message(message)
+            decoded_stamp, decoded = messages.decode_fixed(again, count)
+            assert decoded_stamp == stamp and np.array_equal(decoded, row), name
+    point = PointStamped()
+    point.header.frame_id, point.header.stamp.sec, point.point.z = frame_id, 3, -2.5e-4
+    assert messages.decode_point(serialize_message(point)) == (3_000_000_000, 0.0, 0.0, -2.5e-4)
+    with pytest.raises(messages.MessageError):
+        messages.decode_point(b"\x00\x01\x00\x00\x01")
+
+
+def test_batch_cloud_round_trip():
+    stamps = 1_700_000_000_000_000_000 + np.arange(100, dtype=np.int64) * PERIOD_NS
+    xyz = np.random.default_rng(1).standard_normal((100, 3)) * 1e-4
+    cloud = deserialize_message(serialize_message(messages.batch_cloud(int(stamps[0]), "amb", stamps, xyz)),
+                                PointCloud2)
+    got_stamps, got_xyz = messages.batch_samples(cloud)
+    np.testing.assert_array_equal(got_stamps, stamps)
+    np.testing.assert_array_equal(got_xyz, xyz)
+    cloud.fields = cloud.fields[:3]
+    with pytest.raises(messages.MessageError, match="lacks field"):
+        messages.batch_samples(cloud)
+
+
+# ---------------------------------------------------------------------------------------------- over DDS
+def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
+    """Replay at real time (10 kHz) into the node with its default best-effort input: same numbers, none lost."""
+    bag, source = drop_bag(tmp_path / "drop")
+    rng = np.random.default_rng(0)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    coeffs = Coefficients(0.2 * rng.standard_normal(zeros.alpha_R.shape),
+                          0.2 * rng.standard_normal(zeros.alpha_Z.shape))
+    coefficient_file = save_coefficients(tmp_path / "coefficients.yaml", coeffs, CONFIG, TrainingRecord())
+    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, coeffs))
+    n_samples = int(expected.estimate.onset_index + len(expected.estimate.stamps_ns))
+    recorded, recorded_batched = tmp_path / "live", tmp_path / "live_batched"
+    d = domain(0)
+    with Peer(d) as peer, NodeProcess(tmp_path, d, ["--config", RIG, "--ros-args", "-p",
+                                                    f"node.coefficients:={coefficient_file}", *FAST_NODE]) as node:
+        peer.wait_ready(node)
+        assert peer.latest[MODEL]["level"] == OK
+        assert str(coefficient_file) in peer.latest[MODEL]["message"]
+        replay = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), "--record", str(recorded), "--timeout", "30"],
+            env=ros_env(d), capture_output=True, text=True, timeout=240,
+        )
+        assert replay.returncode == 0, f"{replay.stdout}\n{replay.stderr}\nnode:\n{node.log()}"
+        assert peer.wait_for(lambda: peer.count("received") == n_samples, 20), (peer.latest.get(INPUT), node.log())
+        for key in ("rejected", "gaps", "missing_samples", "malformed_messages"):
+            assert peer.count(key) == 0, (key, peer.latest[INPUT])
+        assert peer.value(CONTACT, "drops") == "1"
+
+        # Again, as PointCloud2 batches at twice real time: the stamps jump back to the bag's start,
+        # the node closes the touchdown (clock jump), starts over and gives the same estimates.
+        again = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), "--record", str(recorded_batched),
+             "--batch", "100", "--rate", "2", "--timeout", "30"],
+            env=ros_env(d), capture_output=True, text=True, timeout=240,
+        )
+        assert again.returncode == 0, f"{again.stdout}\n{again.stderr}\nnode:\n{node.log()}"
+        assert peer.wait_for(lambda: peer.count("received") == 2 * n_samples, 20), peer.latest.get(INPUT)
+        assert peer.count("clock_jump_backward") == 1 and peer.count("batch_messages") == -(-n_samples // 100)
+        assert peer.value(LAST, "end_reason") == "clock_jump" and peer.value(CONTACT, "drops") == "2"
+        assert peer.count("gaps") == 0 and peer.count("rejected") == 0
+        assert node.alive()
+
+    for bag_out in (recorded, recorded_batched):
+        for series in estimate_topics(expected.estimate, CONFIG):
+            got = read_vector_topic(bag_out, series.topic)
+            assert got is not None and got.msgtype.endswith(series.msgtype), series.topic
+            np.testing.assert_array_equal(got.stamps_ns, series.stamps_ns, err_msg=f"{series.topic} ({source})")
+            assert_close(got.values, np.asarray(series.values), series.topic)
+            if series.covariance is not None:
+                assert_close(got.covariance, np.asarray(series.covariance), series.topic + " covariance")
+
+
+def test_drop_relevitation_alarm_and_every_bad_input_counted(tmp_path):
+    """Parameter-file form, missing coefficient file, crafted input through the real topics."""
+    missing = tmp_path / "no_such_coefficients.yaml"
+    args = ["--ros-args", "--params-file", RIG, "-p", f"node.coefficients:={missing}",
+            "-p", "node.input_reliability:=reliable", "-p", "node.alarm_force:=1.0e+4", *FAST_NODE]
+    d = domain(1)
+    with Peer(d) as peer, NodeProcess(tmp_path, d, args) as node:
+        peer.wait_ready(node)
+        model = peer.latest[MODEL]
+        assert model["level"] == ERROR and "not found" in model["message"] and "constant model" in model["message"]
+        assert "not found" in node.log()
+
+        # 1. Levitation, a drop, back to levitation: one touchdown with its summary and a force alarm.
+        stamps, first = model_drop_record(seed=4, duration=0.05)
+        ramp = np.linspace(first[-1], [0.0, 0.0, 0.0], 50)
+        settle = CONFIG.noise_rms * np.random.default_rng(5).standard_normal((300, 3))
+        xyz = np.concatenate([first, ramp, settle])
+        stamps = stamps[0] + np.arange(len(xyz), dtype=np.int64) * PERIOD_NS
+        peer.publish_points(stamps, xyz)
+        assert peer.wait_for(lambda: LAST in peer.latest, 20), (peer.latest, node.log())
+        summary = peer.latest[LAST]["values"]
+        assert summary["end_reason"] == "relevitated" and int(summary["axial_impacts"]) >= 1
+        assert float(summary["peak_axial_force_N"]) > 1.0e4
+        assert any(h["name"] == CONTACT and h["level"] == ERROR and "alarm" in h["message"] for h in peer.history)
+        assert peer.wait_for(lambda: peer.count("received") == len(xyz), 10)
+        assert peer.value(CONTACT, "relevitations") == "1" and peer.value(CONTACT, "drops") == "1"
+        assert peer.latest[INPUT]["level"] == OK
+
+        # 2. Every kind of bad sample, continuing the same grid.
+        k = [len(xyz)]
+        last = [int(stamps[-1])]
+
+        def good(n):
+            out = []
+            for _ in range(n):
+                last[0] += PERIOD_NS
+                out.append((last[0], [0.0, 0.0, 0.0]))
+            return out
+
+        bad = good(20)
+        bad += [(last[0] + PERIOD_NS, [np.nan, 0.0, 0.0]), (last[0] + 2 * PERIOD_NS, [0.0, np.inf, 0.0])]
+        last[0] += 2 * PERIOD_NS
+        bad += good(1)
+        bad += [(last[0], [0.0, 0.0, 0.0]), (last[0], [0.0, 0.0, 0.0])]  # 2 duplicates
+        bad += [(last[0] - 5 * PERIOD_NS, [0.0, 0.0, 0.0])]  # out of order
+        last[0] += 3 * PERIOD_NS  # a gap of 3 missing samples before the next one
+        bad += good(1)
+        bad += [(last[0] + PERIOD_NS, [CONFIG.node.sensor_range, 0.0, 0.0])]  # saturated
+        bad += [(last[0] + 2 * PERIOD_NS, [0.0, 0.0, 0.25])]  # millimetres
+        last[0] += 2 * PERIOD_NS
+        bad += [(last[0] + PERIOD_NS + PERIOD_NS // 2, [0.0, 0.0, 0.0])]  # half a period off the grid
+        bad += good(10)
+        last[0] += 10 * 1_000_000_000  # the sensor clock jumps 10 s forward
+        bad += good(60)
+        last[0] -= 20 * 1_000_000_000  # and 20 s back
+        bad += good(10)
+        bad_stamps = np.array([s for s, _ in bad], np.int64)
+        peer.publish_points(bad_stamps, np.array([v for _, v in bad]), spacing=0.001)
+        peer.points.publish(b"\x00\x01\x00\x00\x07")  # a truncated message
+        expected_received = k[0] + len(bad)
+        assert peer.wait_for(lambda: peer.count("received") == expected_received, 10), peer.latest.get(INPUT)
+
+        # 3. The batched input: one good batch continuing the grid, one without its z field.
+        batch_stamps = last[0] + PERIOD_NS * np.arange(1, 6, dtype=np.int64)
+        peer.batches.publish(messages.batch_cloud(int(batch_stamps[0]), "amb_sensor", batch_stamps, np.zeros((5, 3))))
+        broken = messages.cloud(int(batch_stamps[-1]), "amb_sensor", ("t", "x", "y"), np.zeros((3, 3)))
+        peer.batches.publish(broken)
+        expected = {
+            "received": expected_received + 5,
+            "rejected.non_finite": 2, "rejected.duplicate": 2, "rejected.out_of_order": 1,
+            "rejected.saturated": 1, "rejected.millimetre": 1, "rejected.off_grid": 1,
+            "gaps": 1, "missing_samples": 3, "clock_jump_forward": 1, "clock_jump_backward": 1, "resyncs": 0,
+            "malformed_messages": 2, "batch_messages": 2, "rejected": 8,
+        }  # fmt: skip
+        assert peer.wait_for(lambda: all(peer.count(key) == value for key, value in expected.items()), 15), (
+            {key: (peer.count(key), value) for key, value in expected.items()}, node.log()
+        )
+        assert any(h["name"] == INPUT and h["level"] == WARN for h in peer.history)  # WARN when it happened
+        log = node.log()
+        assert "jumped forward" in log and "jumped back" in log and "message refused" in log
+        assert node.alive()
+
+
+def test_mismatched_coefficient_file_runs_the_constant_model_with_an_error(tmp_path):
+    other_rig = load_config(overrides={"rig.mass": 300.0})
+    zeros = Coefficients.zeros(other_rig.kernel)
+    coefficient_file = save_coefficients(tmp_path / "other_rig.yaml", zeros, other_rig, TrainingRecord())
+    d = domain(2)
+    with Peer(d) as peer, NodeProcess(tmp_path, d, ["--coefficients", str(coefficient_file), "--ros-args",
+                                                    "-p", "node.input_reliability:=reliable", *FAST_NODE]) as node:
+        peer.wait_ready(node)
+        model = peer.latest[MODEL]
+        assert model["level"] == ERROR and "another rig" in model["message"] and "rig.mass" in model["message"]
+        stamps = 1_700_000_000_000_000_000 + np.arange(100, dtype=np.int64) * PERIOD_NS
+        peer.publish_points(stamps, np.zeros((100, 3)))
+        assert peer.wait_for(lambda: peer.count("received") == 100 and peer.value(CONTACT, "phase") == "levitated",
+                             10), peer.latest
+        assert peer.latest[MODEL]["level"] == ERROR  # still reported, every period
+        assert node.alive()
+
+
+def test_invalid_rig_parameter_stops_the_node_with_a_clear_message(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "touchdown_ros.ros.node", "--ros-args", "-p", "rig.mass:=-1.0"],
+        env=ros_env(domain(3)), capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 2
+    assert "rig.mass" in result.stderr and "must be > 0" in result.stderr

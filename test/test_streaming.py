@@ -1,0 +1,262 @@
+"""Streaming estimator: the offline numbers sample by sample, and every bad-input class counted.
+
+The records are made by integrating the estimator's own model (`rk4_step` at a tenth
+of the sample period) after a levitated stretch of zeros, plus sensor noise. The
+reference is the offline path on the same samples: `to_grid` -> `detect_drop` ->
+`make_estimator(...)`.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from touchdown_ros.core.dynamics import rk4_step
+from touchdown_ros.core.estimate import detect_drop, make_estimator, to_grid
+from touchdown_ros.core.streaming import (
+    LEVITATED,
+    TOUCHDOWN,
+    WAITING,
+    StreamingEstimator,
+    StreamSettings,
+    estimate_stream,
+    make_chunk_filter,
+)
+from touchdown_ros.io.config import load_config
+
+CONFIG = load_config()
+PERIOD_NS = int(round(CONFIG.sample_period * 1e9))
+T0_NS = 1_700_000_000_000_000_000
+SIGNALS = ("state", "state_cov", "acceleration", "acceleration_cov", "force_xyz", "F_n", "F_t", "F_z")
+CHUNKS = (8, 32, 128)  # small set: every path (padding, several chunks per push) at little compile time
+
+
+def model_drop_record(config=CONFIG, seed=0, levitated=0.02, duration=0.15, substeps=10, lateral_velocity=0.005,
+                      t0_ns=T0_NS, coeffs=None):
+    """(stamps ns, measured (N, 3) m): `levitated` s of zeros, then the model's own drop, plus noise."""
+    model = config.model(coeffs)
+    h = config.sample_period / substeps
+    n_levitated, n_drop = int(round(levitated / config.sample_period)), int(round(duration / config.sample_period))
+    xi0 = jnp.array([0.0, 0.0, 0.0, 0.0, lateral_velocity, 0.0, 0.0])
+
+    def per_sample(xi, _):
+        xi = jax.lax.fori_loop(0, substeps, lambda i, s: rk4_step(model, s, h), xi)
+        return xi, xi
+
+    _, states = jax.jit(lambda x: jax.lax.scan(per_sample, x, None, length=n_drop - 1))(xi0)
+    positions = np.concatenate([np.zeros((n_levitated + 1, 3)), np.asarray(states)[:, :3]])
+    measured = positions + config.noise_rms * np.random.default_rng(seed).standard_normal(positions.shape)
+    stamps = t0_ns + np.arange(len(measured), dtype=np.int64) * PERIOD_NS
+    return stamps, measured
+
+
+def offline(stamps, measured, config=CONFIG):
+    """The offline estimate of a record, as `estimate_bag` computes it."""
+    grid = to_grid(stamps, measured, config.sample_period)
+    onset = detect_drop(grid.etas[:, 2], config.sample_period, config.drop.threshold,
+                        config.drop.levitated_window, config.rig.gravity)
+    assert onset is not None
+    return make_estimator(config.model(), config.noise, config.sample_period)(grid.stamps_ns, grid.etas, onset)
+
+
+def assert_same(stream, reference, rtol=1e-9):
+    """Every filtered signal equal to rtol relative to the signal's largest magnitude."""
+    np.testing.assert_array_equal(stream.stamps_ns, reference.stamps_ns)
+    for name in SIGNALS:
+        a, b = getattr(stream, name), np.asarray(getattr(reference.filtered, name))
+        assert a.shape == b.shape, name
+        np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * np.max(np.abs(b)), err_msg=name)
+    np.testing.assert_array_equal(stream.axial_contact, np.asarray(reference.filtered.axial_contact))
+    np.testing.assert_array_equal(stream.radial_contact, np.asarray(reference.filtered.radial_contact))
+    np.testing.assert_allclose(stream.innovation, reference.innovation, rtol=rtol, atol=1e-15, equal_nan=True)
+    np.testing.assert_allclose(stream.nis, reference.nis, rtol=rtol, atol=rtol * np.nanmax(reference.nis),
+                               equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def chunk_filter():
+    return make_chunk_filter(CONFIG.model(), CONFIG.noise, CONFIG.sample_period)
+
+
+@pytest.fixture(scope="module")
+def record():
+    return model_drop_record()
+
+
+@pytest.fixture(scope="module")
+def reference(record):
+    return offline(*record)
+
+
+def streaming(chunk_filter, **overrides):
+    settings = StreamSettings.from_config(CONFIG, chunk_sizes=CHUNKS, **overrides)
+    return StreamingEstimator(CONFIG.model(), CONFIG.noise, settings, chunk_filter)
+
+
+def batches(kind, n, seed=1):
+    if kind == "sample_by_sample":
+        return [1]
+    if kind == "whole_record":
+        return None
+    return list(np.random.default_rng(seed).integers(1, 300, size=n))
+
+
+@pytest.mark.parametrize("kind", ["sample_by_sample", "random_batches", "whole_record"])
+def test_stream_equals_offline(chunk_filter, record, reference, kind):
+    estimator = streaming(chunk_filter)
+    out, events = estimate_stream(estimator, *record, batches(kind, len(record[0])))
+    assert_same(out, reference)
+    assert [e.kind for e in events if e.kind != "force_alarm"] == ["levitated", "drop", "touchdown_end"]
+    counts = estimator.counts
+    assert counts.received == counts.accepted == counts.rows == len(record[0])
+    assert counts.estimated == len(reference.stamps_ns)
+    assert sum(counts.rejected.values()) == counts.gaps == counts.drops - 1 == 0
+
+
+def test_touchdown_summary_and_force_alarm(chunk_filter, record, reference):
+    limit = 1.0e4
+    estimator = streaming(chunk_filter, alarm_force=limit)
+    out, events = estimate_stream(estimator, *record, [64])
+    (summary,) = [e.summary for e in events if e.kind == "touchdown_end"]
+    filtered = reference.filtered
+    axial = np.asarray(filtered.axial_contact)
+    assert summary.axial_impacts == np.count_nonzero(axial & ~np.concatenate([[False], axial[:-1]])) > 1
+    assert summary.peak_axial_force == pytest.approx(float(np.max(filtered.F_z)), rel=1e-9)
+    force = np.asarray(filtered.force_xyz)
+    assert summary.peak_radial_force == pytest.approx(float(np.max(np.hypot(force[:, 0], force[:, 1]))), rel=1e-9)
+    assert summary.samples == len(reference.stamps_ns) and summary.end_reason == "end_of_stream"
+    assert summary.onset_stamp_ns == reference.stamps_ns[0]
+    above = np.linalg.norm(force, axis=1) > limit
+    assert estimator.counts.alarm_samples == np.count_nonzero(above) > 0
+    assert any(e.kind == "force_alarm" for e in events)
+
+
+def test_gaps_and_non_finite_values_are_predict_only_rows(chunk_filter, record):
+    stamps, measured = record
+    measured = measured.copy()
+    measured[[30, 400, 401, 900]] = np.nan  # whole rows
+    measured[700, 1] = np.inf  # one component
+    keep = np.ones(len(stamps), bool)
+    keep[[10, 300, 301, 302, 1200]] = False  # 3 gaps (one in the levitated window), 5 missing samples
+    stamps, measured = stamps[keep], measured[keep]
+    reference_measured = np.where(np.isinf(measured), np.nan, measured)
+    estimator = streaming(chunk_filter)
+    out, _ = estimate_stream(estimator, stamps, measured, batches("random_batches", len(stamps), seed=2))
+    assert_same(out, offline(stamps, reference_measured))
+    counts = estimator.counts
+    assert (counts.gaps, counts.missing_samples, counts.non_finite) == (3, 5, 5)
+    assert counts.rows == len(stamps) + 5
+    assert not np.any(out.used[np.isnan(out.measured).any(axis=1)])
+
+
+def test_refused_stamps_leave_the_estimate_unchanged(chunk_filter, record, reference):
+    stamps, measured = record
+    s, m = list(stamps), list(measured)
+    junk = np.array([1.0, 1.0, 1.0])  # values that must never be used
+    insertions = [  # (position, stamp, value): applied from the back so positions stay valid
+        (1000, stamps[999], junk),  # duplicate of the previous sample
+        (800, stamps[790], junk),  # out of order, 10 samples old
+        (600, stamps[599] + PERIOD_NS // 2, junk),  # half a period off the grid
+        (400, stamps[399], junk),  # duplicate
+        (400, stamps[399], junk),  # and again
+        (100, stamps[50], junk),  # out of order in the levitated stretch
+    ]
+    for position, stamp, value in insertions:
+        s.insert(position, stamp)
+        m.insert(position, value)
+    estimator = streaming(chunk_filter)
+    out, _ = estimate_stream(estimator, np.array(s), np.array(m), [1])
+    assert_same(out, reference)
+    counts = estimator.counts
+    assert (counts.duplicate, counts.out_of_order, counts.off_grid) == (3, 2, 1)
+    assert counts.received == len(stamps) + 6 and counts.accepted == len(stamps)
+
+
+def test_saturated_and_millimetre_values_are_counted_and_not_used(chunk_filter, record):
+    stamps, measured = record
+    bad = measured.copy()
+    full_scale = CONFIG.node.sensor_range
+    bad[500, 0] = full_scale  # saturated at + full scale
+    bad[501, 1] = -full_scale  # and at - full scale
+    bad[1300] = measured[1300] * 1e3  # the same sample in mm
+    bad[150] = [0.0, 0.0, 0.25]  # a millimetre value in the levitated stretch
+    estimator = streaming(chunk_filter)
+    out, _ = estimate_stream(estimator, stamps, bad, batches("random_batches", len(stamps), seed=3))
+    expected = measured.copy()
+    expected[[500, 501, 1300, 150]] = np.nan
+    assert_same(out, offline(stamps, expected))
+    assert (estimator.counts.saturated, estimator.counts.millimetre) == (2, 2)
+
+
+def test_clock_jumps_close_the_touchdown_and_restart(chunk_filter, record):
+    stamps, measured = record
+    forward = np.concatenate([stamps[:1000], stamps[1000:] + 2_000_000_000])  # +2 s in the touchdown
+    estimator = streaming(chunk_filter)
+    out, events = estimate_stream(estimator, forward, measured, [37])
+    ends = [e.summary for e in events if e.kind == "touchdown_end"]
+    assert [e.end_reason for e in ends] == ["clock_jump"]
+    assert ends[0].end_stamp_ns == stamps[999]
+    assert estimator.counts.clock_jump_forward == 1 and estimator.counts.clock_jump_backward == 0
+    # After the jump the stream starts over: the record's tail (on the bearing) becomes the new levitated level.
+    assert estimator.phase == LEVITATED and len(out.stamps_ns) == ends[0].samples
+
+    backward = np.concatenate([stamps[:1000], stamps[1000:] - 5_000_000_000])
+    estimator = streaming(chunk_filter)
+    _, events = estimate_stream(estimator, backward, measured, [1])
+    assert [e.summary.end_reason for e in events if e.kind == "touchdown_end"] == ["clock_jump"]
+    assert estimator.counts.clock_jump_backward == 1 and estimator.counts.out_of_order == 0
+
+
+def test_shifted_clock_resyncs_the_grid(chunk_filter, record):
+    stamps, measured = record
+    shifted = np.concatenate([stamps[:100], stamps[100:] + PERIOD_NS // 2])  # in the levitated stretch
+    estimator = streaming(chunk_filter)
+    out, events = estimate_stream(estimator, shifted, measured, [1])
+    resync_after = estimator.settings.resync_after
+    assert estimator.counts.off_grid == resync_after - 1  # the resync_after-th starts the new grid
+    assert estimator.counts.resyncs == 1 and [e.kind for e in events].count("resync") == 1
+    # The new grid starts at sample 100 + resync_after - 1; the drop is found and filtered on it.
+    restart = 100 + resync_after - 1
+    assert_same(out, offline(shifted[restart:], measured[restart:]))
+
+
+def test_return_to_levitation_then_a_second_drop(chunk_filter):
+    stamps, first = model_drop_record(seed=4, duration=0.05)
+    n = len(first)
+    ramp = np.linspace(first[-1], [0.0, 0.0, 0.0], 50)  # re-levitated in 5 ms
+    _, second = model_drop_record(seed=5, levitated=0.03, duration=0.05)
+    noise = CONFIG.noise_rms * np.random.default_rng(6).standard_normal((len(ramp), 3))
+    measured = np.concatenate([first, ramp + noise, second])
+    stamps = T0_NS + np.arange(len(measured), dtype=np.int64) * PERIOD_NS
+    estimator = streaming(chunk_filter)
+    out, events = estimate_stream(estimator, stamps, measured, batches("random_batches", len(stamps), seed=7))
+
+    kinds = [e.kind for e in events if e.kind != "force_alarm"]
+    assert kinds == ["levitated", "drop", "touchdown_end", "levitated", "drop", "touchdown_end"]
+    first_end, second_end = [e.summary for e in events if e.kind == "touchdown_end"]
+    assert (first_end.end_reason, second_end.end_reason) == ("relevitated", "end_of_stream")
+    counts = estimator.counts
+    assert (counts.drops, counts.relevitations) == (2, 1)
+    assert estimator.phase == WAITING
+    # The first touchdown ends inside the ramp's settled tail; from the next row the stream
+    # is a new record, and its estimate equals the offline estimate of that record.
+    end = int(np.searchsorted(stamps, first_end.end_stamp_ns))
+    assert n < end < n + len(ramp) + CONFIG.node.relevitation_window / CONFIG.sample_period + 1
+    second_part = out.stamps_ns > first_end.end_stamp_ns
+    reference = offline(stamps[end + 1 :], measured[end + 1 :])
+    assert_same(out._replace(**{k: v[second_part] for k, v in out._asdict().items()}), reference)
+    assert first_end.axial_impacts >= 1 and second_end.axial_impacts >= 1
+
+
+def test_phases_and_initial_position_wait_for_enough_samples(chunk_filter, record):
+    stamps, measured = record
+    estimator = streaming(chunk_filter)
+    assert estimator.phase == WAITING
+    estimator.push(stamps[:10], measured[:10])
+    assert estimator.phase == WAITING and estimator.levitated_reference is None
+    estimator.push(stamps[10:60], measured[10:60])
+    assert estimator.phase == LEVITATED
+    np.testing.assert_allclose(estimator.levitated_reference[2], np.mean(measured[:50, 2]), rtol=0, atol=1e-18)
+    update = estimator.push(stamps[60:250], measured[60:250])
+    assert estimator.phase == TOUCHDOWN and len(update.estimates.stamps_ns) > 0

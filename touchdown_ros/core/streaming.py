@@ -1,0 +1,709 @@
+"""Streaming touchdown estimation: samples in one at a time or in batches, the offline numbers out.
+
+`StreamingEstimator` does live what `core.estimate` does offline on a whole record:
+places samples on the sensor's regular time grid (`to_grid`, gaps become NaN rows),
+keeps the levitated mean of z and finds the drop onset exactly as `detect_drop`,
+starts the EKF with `initial_belief` at the onset and filters every grid row from
+there on. The EKF runs in chunks of a few compiled lengths (`lax.scan`, NaN padding
+and a mask so that padding never advances the belief), so the per-sample Python
+cost stays small. Results equal `make_estimator(...)` on the same record to
+round-off (the filtered signals; the streaming estimator has no smoother).
+
+On top of the offline pipeline it classifies and counts what a live sensor stream
+can do wrong (duplicate, out-of-order and off-grid stamps, gaps, clock jumps,
+non-finite, saturated and millimetre values), detects the return to levitation,
+summarises each touchdown and raises a force alarm. No ROS in here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from touchdown_ros.core.ekf import Belief, ekf_step
+from touchdown_ros.core.estimate import initial_belief, signals
+from touchdown_ros.core.types import FilterNoise, Model
+
+if TYPE_CHECKING:  # only for the type hint of StreamSettings.from_config; core never imports io at run time
+    from touchdown_ros.io.config import Config
+
+#: Phases of the stream.
+WAITING = "waiting"  # collecting the levitated window (no reference yet)
+LEVITATED = "levitated"  # levitated reference known, watching for the drop
+TOUCHDOWN = "touchdown"  # drop detected, EKF running on every grid row
+
+#: Reasons a sample's stamp is refused (the sample is not placed on the grid).
+STAMP_REJECTIONS = ("duplicate", "out_of_order", "off_grid")
+#: Reasons a sample's values are not used (its grid row becomes predict-only).
+VALUE_REJECTIONS = ("non_finite", "saturated", "millimetre")
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    """What the streaming estimator needs besides the model; SI units."""
+
+    sample_period: float  # s, sensor grid
+    drop_threshold: float  # m below the levitated mean of z (drop_detection.threshold)
+    levitated_window: float  # s of levitation averaged for the reference
+    gravity: float  # m/s^2, for the free-fall time of the threshold
+    initial_samples: int = 5  # samples averaged for the initial position (as offline)
+    grid_tolerance: float = 0.25  # periods a stamp may sit off the grid (as `to_grid`)
+    max_gap: float = 0.05  # s; a longer forward or backward stamp jump is a clock jump (reset)
+    resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
+    sensor_range: float = math.inf  # m; |value| at or beyond it is saturated
+    millimetre_limit: float = 0.01  # m; |value| beyond it is taken for a value in mm
+    relevitation_band: float = 20e-6  # m around the levitated mean (x, y and z)
+    relevitation_window: float = 0.005  # s inside the band that ends a touchdown
+    alarm_force: float = math.inf  # N, |contact force| that raises a force alarm
+    chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
+
+    @staticmethod
+    def from_config(config: "Config", **overrides: Any) -> "StreamSettings":
+        """Settings of a rig YAML (`drop_detection.*`, `sensor.*`, `node.*`)."""
+        node = getattr(config, "node", None)
+        values: dict[str, Any] = dict(
+            sample_period=config.sample_period,
+            drop_threshold=config.drop.threshold,
+            levitated_window=config.drop.levitated_window,
+            gravity=config.rig.gravity,
+        )
+        if node is not None:
+            values.update(
+                grid_tolerance=node.grid_tolerance,
+                max_gap=node.max_gap,
+                resync_after=node.resync_after,
+                sensor_range=node.sensor_range,
+                millimetre_limit=node.millimetre_limit,
+                relevitation_band=node.relevitation_band,
+                relevitation_window=node.relevitation_window,
+                alarm_force=node.alarm_force,
+                chunk_sizes=tuple(node.chunk_sizes),
+            )
+        values.update(overrides)
+        return StreamSettings(**values)
+
+    @property
+    def window_samples(self) -> int:
+        """Grid rows of the levitated window (as `detect_drop`)."""
+        return max(1, int(round(self.levitated_window / self.sample_period)))
+
+    @property
+    def fall_samples(self) -> int:
+        """Rows the onset is moved back from the threshold crossing: sqrt(2 threshold / g) (as `detect_drop`)."""
+        return int(round(np.sqrt(2.0 * self.drop_threshold / self.gravity) / self.sample_period))
+
+    @property
+    def relevitation_samples(self) -> int:
+        return max(1, int(round(self.relevitation_window / self.sample_period)))
+
+
+@dataclass
+class StreamCounts:
+    """Running counts of everything the stream did; `as_dict()` for reports."""
+
+    received: int = 0  # samples given to push()
+    accepted: int = 0  # samples placed on the grid
+    rows: int = 0  # grid rows (accepted samples + missing grid points)
+    estimated: int = 0  # rows the EKF has filtered
+    duplicate: int = 0  # stamp on an already filled grid point
+    out_of_order: int = 0  # stamp older than the last placed sample
+    off_grid: int = 0  # stamp more than grid_tolerance periods off the grid
+    non_finite: int = 0  # NaN or inf value (row kept, predict-only)
+    saturated: int = 0  # |value| at the sensor range (row kept, predict-only)
+    millimetre: int = 0  # |value| > millimetre_limit (row kept, predict-only)
+    gaps: int = 0  # places where grid points were missing
+    missing_samples: int = 0  # missing grid points (predict-only rows)
+    clock_jump_forward: int = 0  # forward stamp jumps > max_gap (reset)
+    clock_jump_backward: int = 0  # backward stamp jumps > max_gap (reset)
+    resyncs: int = 0  # grid re-anchored after resync_after refused stamps
+    drops: int = 0  # touchdowns detected
+    relevitations: int = 0  # touchdowns ended by the return to levitation
+    alarm_samples: int = 0  # estimates with |contact force| > alarm_force
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        """Samples not used, per reason."""
+        return {name: getattr(self, name) for name in STAMP_REJECTIONS + VALUE_REJECTIONS}
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class TouchdownSummary(NamedTuple):
+    """One touchdown, from the drop onset to its end."""
+
+    onset_stamp_ns: int
+    end_stamp_ns: int
+    samples: int  # grid rows filtered
+    missing_samples: int  # predict-only rows among them (gaps and refused values)
+    axial_impacts: int  # rising edges of the axial contact flag
+    radial_impacts: int  # rising edges of the radial contact flag
+    peak_axial_force: float  # max F_z, N
+    peak_radial_force: float  # max |(F_x, F_y)|, N
+    mean_nis: float  # mean normalised innovation squared (3 expected)
+    end_reason: str  # relevitated | clock_jump | resync | end_of_stream
+
+
+class StreamEvent(NamedTuple):
+    """Something the stream noticed; `summary` is set when a touchdown ends."""
+
+    kind: str  # levitated | drop | touchdown_end | clock_jump | resync | force_alarm
+    stamp_ns: int
+    message: str
+    value: float = math.nan  # levitated mean z (m), peak force (N), ...
+    summary: TouchdownSummary | None = None
+
+
+class StreamOutput(NamedTuple):
+    """Per-row estimates (filtered), stacked over the rows; SI units."""
+
+    stamps_ns: np.ndarray  # (n,) int64, grid stamps
+    measured: np.ndarray  # (n, 3) m, NaN where missing or refused
+    state: np.ndarray  # (n, 7) [x y z theta xdot ydot zdot]
+    state_cov: np.ndarray  # (n, 7, 7)
+    acceleration: np.ndarray  # (n, 3) m/s^2
+    acceleration_cov: np.ndarray  # (n, 3, 3)
+    force_xyz: np.ndarray  # (n, 3) contact force on the rotor, sensor axes, N
+    F_n: np.ndarray  # (n,) N
+    F_t: np.ndarray
+    F_z: np.ndarray
+    radial_contact: np.ndarray  # (n,) bool
+    axial_contact: np.ndarray
+    innovation: np.ndarray  # (n, 3) m, NaN when the row was not used
+    innovation_cov: np.ndarray  # (n, 3, 3) m^2
+    nis: np.ndarray  # (n,)
+    used: np.ndarray  # (n,) bool, measurement used
+
+    @staticmethod
+    def empty() -> "StreamOutput":
+        return _unpack(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, _PACKED_WIDTH)))
+
+    @staticmethod
+    def concatenate(outputs: Sequence["StreamOutput"]) -> "StreamOutput":
+        outputs = [o for o in outputs if len(o.stamps_ns)] or [StreamOutput.empty()]
+        if len(outputs) == 1:
+            return outputs[0]
+        return StreamOutput(*(np.concatenate(parts) for parts in zip(*outputs)))
+
+
+class StreamUpdate(NamedTuple):
+    """What one push() produced: the new estimates and the events."""
+
+    estimates: StreamOutput
+    events: tuple[StreamEvent, ...]
+
+
+# Column layout of the packed chunk result (one float64 row per sample).
+_LAYOUT = (
+    ("state", 7),
+    ("state_cov", 49),
+    ("acceleration", 3),
+    ("acceleration_cov", 9),
+    ("force_xyz", 3),
+    ("F_n", 1),
+    ("F_t", 1),
+    ("F_z", 1),
+    ("radial_contact", 1),
+    ("axial_contact", 1),
+    ("innovation", 3),
+    ("innovation_cov", 9),
+    ("nis", 1),
+    ("used", 1),
+)
+_PACKED_WIDTH = sum(width for _, width in _LAYOUT)
+_SHAPES = {"state_cov": (7, 7), "acceleration_cov": (3, 3), "innovation_cov": (3, 3)}
+
+
+def _unpack(stamps_ns: np.ndarray, measured: np.ndarray, packed: np.ndarray) -> StreamOutput:
+    columns: dict[str, np.ndarray] = {}
+    start = 0
+    for name, width in _LAYOUT:
+        block = packed[:, start : start + width]
+        start += width
+        if name in _SHAPES:
+            block = block.reshape(-1, *_SHAPES[name])
+        elif width == 1:
+            block = block[:, 0]
+        if name in ("radial_contact", "axial_contact", "used"):
+            block = block.astype(bool)
+        columns[name] = block
+    return StreamOutput(stamps_ns=stamps_ns, measured=measured, **columns)
+
+
+ChunkFunction = Callable[[Belief, Array, Array], tuple[Belief, Array]]
+
+
+def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) -> ChunkFunction:
+    """Jitted `(prior, etas (C, 3), count) -> (prior after row count-1, packed (C, width))`.
+
+    Runs `ekf_step` over the C rows with `lax.scan`; rows at and after `count` are
+    padding: they are computed (so the compiled shape never changes) but the carried
+    belief is kept, so the returned prior is the one after the last real row. The
+    packed rows hold the filtered signals (`estimate.signals`), innovation and NIS,
+    computed as `make_estimator` computes them. One compilation per chunk length C.
+    """
+
+    def run(prior: Belief, etas: Array, count: Array) -> tuple[Belief, Array]:
+        def body(carry: Belief, inputs: tuple[Array, Array]) -> tuple[Belief, Any]:
+            eta, index = inputs
+            next_prior, out = ekf_step(model, noise, sample_period, carry, eta)
+            real = index < count
+            carry = jax.tree.map(lambda new, old: jnp.where(real, new, old), next_prior, carry)
+            return carry, out
+
+        carry, out = jax.lax.scan(body, prior, (etas, jnp.arange(etas.shape[0])))
+        filtered = signals(model, out.filtered)
+        nis = jnp.einsum("ni,nij,nj->n", out.innovation, jnp.linalg.inv(out.innovation_cov), out.innovation)
+        n = etas.shape[0]
+        packed = jnp.concatenate(
+            [
+                filtered.state,
+                filtered.state_cov.reshape(n, 49),
+                filtered.acceleration,
+                filtered.acceleration_cov.reshape(n, 9),
+                filtered.force_xyz,
+                filtered.F_n[:, None],
+                filtered.F_t[:, None],
+                filtered.F_z[:, None],
+                filtered.radial_contact[:, None].astype(etas.dtype),
+                filtered.axial_contact[:, None].astype(etas.dtype),
+                out.innovation,
+                out.innovation_cov.reshape(n, 9),
+                nis[:, None],
+                out.used[:, None].astype(etas.dtype),
+            ],
+            axis=1,
+        )
+        return carry, packed
+
+    return jax.jit(run)
+
+
+class _Touchdown:
+    """Running figures of the touchdown in progress."""
+
+    def __init__(self, onset_stamp_ns: int):
+        self.onset_stamp_ns = onset_stamp_ns
+        self.end_stamp_ns = onset_stamp_ns
+        self.samples = self.missing = self.axial_impacts = self.radial_impacts = 0
+        self.peak_axial = self.peak_radial = -math.inf
+        self.nis_sum, self.nis_count = 0.0, 0
+        self.last_axial = self.last_radial = False
+
+    def add(self, out: StreamOutput) -> None:
+        n = len(out.stamps_ns)
+        if n == 0:
+            return
+        used = out.used
+        n_used = int(np.count_nonzero(used))
+        self.samples += n
+        self.missing += n - n_used
+        self.end_stamp_ns = int(out.stamps_ns[-1])
+        self.axial_impacts += _rising_edges(out.axial_contact, self.last_axial)
+        self.radial_impacts += _rising_edges(out.radial_contact, self.last_radial)
+        self.last_axial, self.last_radial = bool(out.axial_contact[-1]), bool(out.radial_contact[-1])
+        self.peak_axial = max(self.peak_axial, float(out.F_z.max()))
+        fx, fy = out.force_xyz[:, 0], out.force_xyz[:, 1]
+        self.peak_radial = max(self.peak_radial, math.sqrt(float((fx * fx + fy * fy).max())))
+        if n_used:  # NIS is NaN exactly where the measurement was not used
+            self.nis_sum += float(out.nis[used].sum())
+            self.nis_count += n_used
+
+    def summary(self, end_reason: str) -> TouchdownSummary:
+        return TouchdownSummary(
+            onset_stamp_ns=self.onset_stamp_ns,
+            end_stamp_ns=self.end_stamp_ns,
+            samples=self.samples,
+            missing_samples=self.missing,
+            axial_impacts=self.axial_impacts,
+            radial_impacts=self.radial_impacts,
+            peak_axial_force=self.peak_axial if self.samples else math.nan,
+            peak_radial_force=self.peak_radial if self.samples else math.nan,
+            mean_nis=self.nis_sum / self.nis_count if self.nis_count else math.nan,
+            end_reason=end_reason,
+        )
+
+
+def _rising_edges(flags: np.ndarray, previous: bool) -> int:
+    """False -> True transitions in flags, the element before flags[0] being `previous`."""
+    return int(np.count_nonzero(flags[1:] & ~flags[:-1])) + int(bool(flags[0]) and not previous)
+
+
+def _run_lengths(inside: np.ndarray, carried: int) -> np.ndarray:
+    """Length of the run of True ending at each element, continuing a run of `carried` before."""
+    index = np.arange(len(inside))
+    last_out = np.maximum.accumulate(np.where(inside, -1, index))
+    return np.where(inside, np.where(last_out >= 0, index - last_out, carried + index + 1), 0)
+
+
+class StreamingEstimator:
+    """Live touchdown estimator: `push` samples (stamp ns, x, y, z in m), get estimates and events.
+
+    Compiles the EKF chunk for each of `settings.chunk_sizes` on first use; call
+    `warm_up()` to compile them all before the first sample arrives.
+    """
+
+    def __init__(
+        self, model: Model, noise: FilterNoise, settings: StreamSettings, chunk_filter: ChunkFunction | None = None
+    ):
+        """`chunk_filter`: a `make_chunk_filter` of the same model, noise and period, to share its compilations."""
+        if not settings.chunk_sizes or min(settings.chunk_sizes) < 1:
+            raise ValueError("chunk_sizes must be positive lengths")
+        self.model, self.noise, self.settings = model, noise, settings
+        self._sizes = tuple(sorted(set(int(c) for c in settings.chunk_sizes)))
+        self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period)
+        self._period_ns = settings.sample_period * 1e9
+        self._max_gap_rows = settings.max_gap / settings.sample_period
+        self._initial_cov = np.asarray(noise.initial)
+        self.counts = StreamCounts()
+        self._events: list[StreamEvent] = []
+        self._outputs: list[StreamOutput] = []
+        self._clear_grid()
+        self._start_waiting()
+
+    # ---------------------------------------------------------------- public
+    @property
+    def phase(self) -> str:
+        """waiting (collecting the levitated window), levitated, or touchdown."""
+        return self._phase
+
+    @property
+    def levitated_reference(self) -> np.ndarray | None:
+        """Levitated mean (x, y, z), m; z as `detect_drop` computes it. None while waiting."""
+        return None if self._reference is None else self._reference.copy()
+
+    def warm_up(self) -> None:
+        """Compile the EKF chunk of every configured length (a few seconds each, cached by JAX)."""
+        prior = initial_belief(np.zeros((1, 3)), self._initial_cov, samples=1)
+        for size in self._sizes:  # the same argument types as in _run_filter, or JAX compiles again
+            jax.block_until_ready(self._chunk(prior, np.full((size, 3), np.nan), np.asarray(0, np.int64)))
+
+    def push(self, stamps_ns: np.ndarray | Sequence[int], xyz: np.ndarray) -> StreamUpdate:
+        """Add samples in arrival order: stamps (n,) int ns and displacements (n, 3) m."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        if len(stamps_ns) != len(xyz):
+            raise ValueError(f"{len(stamps_ns)} stamps for {len(xyz)} samples")
+        self.counts.received += len(stamps_ns)
+        self._ingest(stamps_ns, xyz)
+        self._run_filter(final=False)
+        return self._collect()
+
+    def push_one(self, stamp_ns: int, x: float, y: float, z: float) -> StreamUpdate:
+        """One sample (stamp ns, displacement m)."""
+        return self.push(np.array([stamp_ns], np.int64), np.array([[x, y, z]]))
+
+    def finish(self) -> StreamUpdate:
+        """End of stream: filter what is still held and close a touchdown in progress."""
+        if self._phase == TOUCHDOWN:
+            self._run_filter(final=True)
+            self._end_touchdown("end_of_stream")
+        return self._collect()
+
+    # ---------------------------------------------------------------- grid placement
+    def _clear_grid(self) -> None:
+        self._origin: int | None = None  # stamp of grid row 0, ns
+        self._last_index = -1  # grid index of the last placed sample
+        self._refused_streak = 0  # consecutive out-of-order / off-grid samples
+
+    def _ingest(self, stamps: np.ndarray, xyz: np.ndarray) -> None:
+        """Classify samples, place the accepted ones on the grid, hand the rows on; reset at clock jumps."""
+        if self._origin is not None and len(stamps) and self._place_in_order(stamps, xyz):
+            return
+        start = 0
+        while start < len(stamps):
+            if self._origin is None:
+                self._origin, self._last_index = int(stamps[start]), -1
+            s, v = stamps[start:], xyz[start:]
+            offsets = (s - self._origin) / self._period_ns
+            index = np.rint(offsets).astype(np.int64)
+            on_grid = np.abs(offsets - index) <= self.settings.grid_tolerance
+            # Highest placed index before each sample (accepted samples strictly increase).
+            candidates = np.where(on_grid, index, np.iinfo(np.int64).min)
+            before = np.maximum.accumulate(np.concatenate([[self._last_index], candidates[:-1]]))
+            back_jump = (before - index) > self._max_gap_rows
+            forward_jump = (index - before) > self._max_gap_rows
+            out_of_order = (index < before) & ~back_jump
+            duplicate = on_grid & (index == before)
+            off_grid = ~on_grid & (index >= before) & ~forward_jump
+            refused = out_of_order | off_grid
+            streak = _run_lengths(refused, self._refused_streak)
+            resync = refused & (streak >= self.settings.resync_after)
+            event = back_jump | forward_jump | resync
+            stop = int(np.argmax(event)) if event.any() else len(s)
+
+            accepted = on_grid[:stop] & (index[:stop] > before[:stop])
+            self.counts.duplicate += int(np.count_nonzero(duplicate[:stop]))
+            self.counts.out_of_order += int(np.count_nonzero(out_of_order[:stop]))
+            self.counts.off_grid += int(np.count_nonzero(off_grid[:stop]))
+            self._refused_streak = int(streak[stop - 1]) if stop else self._refused_streak
+            if accepted.any():
+                self._place(index[:stop][accepted], v[:stop][accepted])
+            if stop == len(s):
+                return
+            if back_jump[stop]:
+                self.counts.clock_jump_backward += 1
+                self._reset("clock_jump", int(s[stop]), "stamp jumped back by more than max_gap")
+            elif forward_jump[stop]:
+                self.counts.clock_jump_forward += 1
+                self._reset("clock_jump", int(s[stop]), "stamp jumped forward by more than max_gap")
+            else:
+                self.counts.resyncs += 1
+                self._reset("resync", int(s[stop]), f"{self.settings.resync_after} refused stamps in a row")
+            start += stop  # the sample that triggered the reset starts the new grid
+
+    def _place_in_order(self, stamps: np.ndarray, xyz: np.ndarray) -> bool:
+        """Fast path of the usual case: every sample on the next grid point. False if it does not apply."""
+        offsets = (stamps - self._origin) / self._period_ns
+        index = np.rint(offsets).astype(np.int64)
+        if index[0] != self._last_index + 1 or index[-1] != self._last_index + len(index):
+            return False
+        if len(index) > 1 and not (np.diff(index) == 1).all():
+            return False
+        if not (np.abs(offsets - index) <= self.settings.grid_tolerance).all():
+            return False
+        self._refused_streak = 0
+        self._place(index, xyz)
+        return True
+
+    def _place(self, index: np.ndarray, values: np.ndarray) -> None:
+        """Grid rows from the last placed index + 1 to index[-1]: values where given, NaN elsewhere."""
+        if index[-1] - self._last_index != len(index):  # not contiguous: gaps
+            previous = np.concatenate([[self._last_index], index[:-1]])
+            skipped = index - previous - 1
+            self.counts.gaps += int(np.count_nonzero(skipped))
+            self.counts.missing_samples += int(skipped.sum())
+        self.counts.accepted += len(index)
+
+        clean_limit = min(self.settings.millimetre_limit, self.settings.sensor_range)
+        if np.all(np.abs(values) < clean_limit):  # finite and in range: the usual case
+            self._emit_rows(index, values)
+            return
+        values = values.copy()
+        finite = np.isfinite(values)
+        non_finite = ~finite.all(axis=1)
+        magnitude = np.abs(np.where(finite, values, 0.0))
+        millimetre = ~non_finite & (magnitude > self.settings.millimetre_limit).any(axis=1)
+        saturated = ~non_finite & ~millimetre & (magnitude >= self.settings.sensor_range).any(axis=1)
+        self.counts.non_finite += int(np.count_nonzero(non_finite))
+        self.counts.millimetre += int(np.count_nonzero(millimetre))
+        self.counts.saturated += int(np.count_nonzero(saturated))
+        values[~finite] = np.nan  # partial rows keep their finite components, as offline
+        values[millimetre | saturated] = np.nan
+        self._emit_rows(index, values)
+
+    def _emit_rows(self, index: np.ndarray, values: np.ndarray) -> None:
+        """Grid rows from the last placed index + 1 to index[-1] (NaN where no value) on to the phases."""
+        first = self._last_index + 1
+        rows = np.arange(first, index[-1] + 1)
+        etas = np.full((len(rows), 3), np.nan)
+        etas[index - first] = values
+        stamps = self._origin + np.rint(rows * self._period_ns).astype(np.int64)
+        self._last_index = int(index[-1])
+        self.counts.rows += len(rows)
+        self._advance(stamps, etas)
+
+    # ---------------------------------------------------------------- phases
+    def _start_waiting(self) -> None:
+        self._phase = WAITING
+        self._reference: np.ndarray | None = None
+        self._buffer_stamps = np.empty(0, np.int64)
+        self._buffer_etas = np.empty((0, 3))
+        self._buffer_first = 0  # phase-relative index of the buffer's first row
+
+    def _advance(self, stamps: np.ndarray, etas: np.ndarray) -> None:
+        while len(stamps):
+            if self._phase == TOUCHDOWN:
+                stamps, etas = self._advance_touchdown(stamps, etas)
+            else:
+                stamps, etas = self._advance_levitated(stamps, etas)
+
+    def _advance_levitated(self, stamps: np.ndarray, etas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Levitated reference over the first window rows, then the first crossing (`detect_drop`)."""
+        settings = self.settings
+        buffer_stamps = np.concatenate([self._buffer_stamps, stamps])
+        buffer_etas = np.concatenate([self._buffer_etas, etas])
+        if self._reference is None and len(buffer_etas) >= settings.window_samples:
+            window = buffer_etas[: settings.window_samples]
+            z = window[:, 2]
+            finite = np.isfinite(z)
+            reference_z = float(np.mean(z[finite])) if finite.any() else 0.0
+            xy = [float(np.mean(col[np.isfinite(col)])) if np.isfinite(col).any() else 0.0 for col in window[:, :2].T]
+            self._reference = np.array([xy[0], xy[1], reference_z])
+            self._phase = LEVITATED
+            self._events.append(
+                StreamEvent("levitated", int(buffer_stamps[settings.window_samples - 1]),
+                            f"levitated mean z {reference_z * 1e6:.1f} um", reference_z)
+            )
+        if self._reference is not None:
+            z = buffer_etas[:, 2]
+            below = np.flatnonzero(np.isfinite(z) & (z < self._reference[2] - settings.drop_threshold))
+            if below.size:
+                onset = max(0, self._buffer_first + int(below[0]) - settings.fall_samples) - self._buffer_first
+                assert onset >= 0, "buffer trimmed too far"
+                self._start_touchdown(int(buffer_stamps[onset]))
+                rest = buffer_stamps[onset:], buffer_etas[onset:]
+                self._buffer_stamps, self._buffer_etas = np.empty(0, np.int64), np.empty((0, 3))
+                return rest
+            keep_from = max(0, len(buffer_etas) - settings.fall_samples)
+            self._buffer_first += keep_from
+            buffer_stamps, buffer_etas = buffer_stamps[keep_from:], buffer_etas[keep_from:]
+        self._buffer_stamps, self._buffer_etas = buffer_stamps, buffer_etas
+        return np.empty(0, np.int64), np.empty((0, 3))
+
+    def _start_touchdown(self, onset_stamp_ns: int) -> None:
+        self._phase = TOUCHDOWN
+        self.counts.drops += 1
+        self._belief: Belief | None = None
+        self._queue_stamps: list[np.ndarray] = []
+        self._queue_etas: list[np.ndarray] = []
+        self._left_band = False
+        self._band_run = 0
+        self._touchdown = _Touchdown(onset_stamp_ns)
+        self._events.append(StreamEvent("drop", onset_stamp_ns, "drop detected: touchdown estimation started"))
+
+    def _advance_touchdown(self, stamps: np.ndarray, etas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Queue rows for the EKF until the rotor has been back in the levitated band for a window."""
+        assert self._reference is not None
+        inside = np.all(np.abs(etas - self._reference) <= self.settings.relevitation_band, axis=1)
+        if self._left_band and not inside.any():  # on the bearing: the usual case in a touchdown
+            self._band_run = 0
+            self._queue_stamps.append(stamps)
+            self._queue_etas.append(etas)
+            return np.empty(0, np.int64), np.empty((0, 3))
+        counting = np.ones(len(inside), bool)
+        if not self._left_band:
+            outside = np.flatnonzero(~inside)
+            if outside.size == 0:
+                counting[:] = False
+            else:
+                counting[: outside[0]] = False
+                self._left_band = True
+        runs = _run_lengths(inside & counting, self._band_run)
+        ended = np.flatnonzero(runs >= self.settings.relevitation_samples)
+        stop = int(ended[0]) + 1 if ended.size else len(stamps)
+        self._band_run = int(runs[stop - 1])
+        self._queue_stamps.append(stamps[:stop])
+        self._queue_etas.append(etas[:stop])
+        if not ended.size:
+            return np.empty(0, np.int64), np.empty((0, 3))
+        self._run_filter(final=True)
+        self.counts.relevitations += 1
+        self._end_touchdown("relevitated")
+        return stamps[stop:], etas[stop:]
+
+    def _end_touchdown(self, reason: str) -> None:
+        summary = self._touchdown.summary(reason)
+        self._events.append(
+            StreamEvent(
+                "touchdown_end",
+                summary.end_stamp_ns,
+                f"touchdown ended ({reason}): {summary.samples} samples, {summary.axial_impacts} axial impacts, "
+                f"peak axial {summary.peak_axial_force:.4g} N, peak radial {summary.peak_radial_force:.4g} N",
+                summary.peak_axial_force,
+                summary,
+            )
+        )
+        self._start_waiting()
+
+    def _reset(self, kind: str, stamp_ns: int, why: str) -> None:
+        """Clock jump or resync: close a touchdown in progress, re-anchor the grid, wait for levitation."""
+        if self._phase == TOUCHDOWN:
+            self._run_filter(final=True)
+            self._end_touchdown(kind)
+        else:
+            self._start_waiting()
+        self._clear_grid()
+        self._events.append(StreamEvent(kind, stamp_ns, why + "; estimator reset"))
+
+    # ---------------------------------------------------------------- filter
+    def _run_filter(self, final: bool) -> None:
+        """Filter the queued rows in chunks; the first rows wait for the initial position."""
+        if self._phase != TOUCHDOWN or not self._queue_stamps:
+            return
+        stamps = np.concatenate(self._queue_stamps)
+        etas = np.concatenate(self._queue_etas)
+        if len(stamps) == 0:
+            return
+        if self._belief is None:
+            samples = self._initial_samples(etas, final)
+            if samples is None:
+                self._queue_stamps, self._queue_etas = [stamps], [etas]
+                return
+            self._belief = initial_belief(etas, self._initial_cov, samples=samples)
+        self._queue_stamps, self._queue_etas = [], []
+
+        packed_parts = []
+        belief, done, largest = self._belief, 0, self._sizes[-1]
+        while done < len(etas):
+            count = min(len(etas) - done, largest)
+            size = next(c for c in self._sizes if c >= count)
+            padded = np.full((size, 3), np.nan)
+            padded[:count] = etas[done : done + count]
+            belief, packed = self._chunk(belief, padded, np.asarray(count, np.int64))
+            packed_parts.append(np.asarray(packed)[:count])
+            done += count
+        self._belief = belief
+        out = _unpack(stamps, etas, np.concatenate(packed_parts))
+        self.counts.estimated += len(stamps)
+        self._touchdown.add(out)
+        self._check_alarm(out)
+        self._outputs.append(out)
+
+    def _initial_samples(self, etas: np.ndarray, final: bool) -> int | None:
+        """Rows averaged for the initial position: `initial_samples` as offline, more if an axis has no value."""
+        wanted = self.settings.initial_samples
+        if len(etas) < wanted:
+            return len(etas) if final else None
+        seen = np.logical_or.accumulate(np.isfinite(etas), axis=0).all(axis=1)
+        enough = np.flatnonzero(seen[wanted - 1 :])
+        if enough.size:
+            return wanted + int(enough[0])
+        return len(etas) if final else None
+
+    def _check_alarm(self, out: StreamOutput) -> None:
+        squared = np.einsum("ij,ij->i", out.force_xyz, out.force_xyz)
+        above = squared > self.settings.alarm_force**2
+        if above.any():
+            magnitude = np.sqrt(squared)
+            self.counts.alarm_samples += int(np.count_nonzero(above))
+            first = int(np.argmax(above))
+            peak = float(np.max(magnitude))
+            self._events.append(
+                StreamEvent(
+                    "force_alarm",
+                    int(out.stamps_ns[first]),
+                    f"contact force {peak:.4g} N above the alarm limit {self.settings.alarm_force:.4g} N",
+                    peak,
+                )
+            )
+
+    def _collect(self) -> StreamUpdate:
+        update = StreamUpdate(StreamOutput.concatenate(self._outputs), tuple(self._events))
+        self._outputs, self._events = [], []
+        return update
+
+
+def estimate_stream(
+    estimator: StreamingEstimator, stamps_ns: np.ndarray, xyz: np.ndarray, batch_sizes: Sequence[int] | None = None
+) -> tuple[StreamOutput, list[StreamEvent]]:
+    """Push a whole record (in batches of the given sizes, cycled; one batch if None), then finish."""
+    outputs, events = [], []
+    if batch_sizes is None:
+        batch_sizes = [max(1, len(stamps_ns))]
+    start, turn = 0, 0
+    while start < len(stamps_ns):
+        stop = start + int(batch_sizes[turn % len(batch_sizes)])
+        update = estimator.push(stamps_ns[start:stop], xyz[start:stop])
+        outputs.append(update.estimates)
+        events.extend(update.events)
+        start, turn = stop, turn + 1
+    update = estimator.finish()
+    outputs.append(update.estimates)
+    events.extend(update.events)
+    return StreamOutput.concatenate(outputs), events

@@ -1,0 +1,497 @@
+"""`touchdown_estimator`: the live node. Displacements in, touchdown estimates and diagnostics out.
+
+A thin adapter around `core.streaming.StreamingEstimator`: it decodes samples from
+`/amb/displacement` (geometry_msgs/PointStamped, one per sample) and from the
+batched input (sensor_msgs/PointCloud2, fields t x y z), hands them to the
+estimator in small blocks (every `node.flush_samples` samples or every
+`node.flush_period` s), and publishes what comes back on the `/touchdown/*` topics
+(the same topics and types as the offline output bags) and `/diagnostics`.
+
+Run:  touchdown_estimator [--config RIG.yaml] [--coefficients FILE] [--ros-args --params-file RIG.yaml ...]
+
+Parameters are the rig YAML's (ROS 2 parameter-file form); `--config` loads a rig
+file as the base and `--ros-args` parameters override it. A coefficient file that is
+missing or made for another rig does not stop the node: it logs the error, runs the
+constant model and reports ERROR in the "model" diagnostic until restarted with a
+good file (see docs/node.md). An invalid rig configuration does stop it (exit 2).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import AccelWithCovarianceStamped, PointStamped, TwistWithCovarianceStamped, WrenchStamped
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from touchdown_ros.core.streaming import StreamEvent, StreamingEstimator, StreamOutput, StreamSettings
+from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
+from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
+from touchdown_ros.ros import messages
+from touchdown_ros.ros.diagnostics import ERROR, OK, DiagnosticsState, LatencyHistogram, ModelInfo, statuses
+
+NODE_NAME = "touchdown_estimator"
+#: Parameters every rclpy node has; they are not part of the rig configuration.
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+#: Minimum time between two event-triggered diagnostics messages, s.
+EVENT_DIAGNOSTICS_INTERVAL = 0.1
+EXIT_CONFIG = 2
+
+
+def qos(reliability: str, depth: int) -> QoSProfile:
+    """Keep-last QoS of the given reliability (best_effort matches sensor-data publishers)."""
+    policy = ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=policy)
+
+
+def enable_compilation_cache() -> None:
+    """Persistent JAX compilation cache (JAX_COMPILATION_CACHE_DIR or ~/.cache/touchdown_ros/jax)."""
+    import jax
+
+    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_dir", str(Path.home() / ".cache" / "touchdown_ros" / "jax"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+class Inbox:
+    """Samples received and not yet estimated, in arrival order; thread-safe."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._stamps: list[int] = []
+        self._xyz: list[tuple[float, float, float]] = []
+        self._blocks: list[tuple[np.ndarray, np.ndarray]] = []
+        self.count = 0
+        self.oldest_ns = 0  # time.monotonic_ns() when the oldest pending sample arrived
+
+    def add_sample(self, stamp_ns: int, x: float, y: float, z: float) -> int:
+        """Add one sample; returns the number pending."""
+        with self._lock:
+            if not self.count:
+                self.oldest_ns = time.monotonic_ns()
+            self._stamps.append(stamp_ns)
+            self._xyz.append((x, y, z))
+            self.count += 1
+            return self.count
+
+    def add_block(self, stamps_ns: np.ndarray, xyz: np.ndarray) -> int:
+        """Add a batch (after the single samples received before it); returns the number pending."""
+        with self._lock:
+            if not self.count:
+                self.oldest_ns = time.monotonic_ns()
+            self._hold_singles()
+            self._blocks.append((stamps_ns, xyz))
+            self.count += len(stamps_ns)
+            return self.count
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """(stamps ns, xyz m, arrival of the oldest as time.monotonic_ns()) of everything pending, or None."""
+        with self._lock:
+            if not self.count:
+                return None
+            self._hold_singles()
+            blocks, self._blocks, self.count = self._blocks, [], 0
+            oldest = self.oldest_ns
+        if len(blocks) == 1:
+            return (*blocks[0], oldest)
+        return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), oldest
+
+    def _hold_singles(self) -> None:
+        if self._stamps:
+            self._blocks.append((np.array(self._stamps, np.int64), np.array(self._xyz)))
+            self._stamps, self._xyz = [], []
+
+
+def raw_publish(publisher) -> Callable[[bytes], None]:
+    """Publish serialized bytes without rclpy's per-call type check and handle guard (~1 us of 5-10).
+
+    The caller holds `publisher.handle`. Falls back to `publisher.publish` if rclpy's
+    internals differ from the jazzy wheel's.
+    """
+    inner = getattr(publisher, "_Publisher__publisher", None)
+    return getattr(inner, "publish_raw", None) or publisher.publish
+
+
+def quiet_at_shutdown(callback):
+    """Wrap a callback: a publish failing because a signal has just shut the context down ends it quietly."""
+
+    @functools.wraps(callback)
+    def wrapped(self, *args):
+        try:
+            return callback(self, *args)
+        except RCLError:
+            if self.context.ok():
+                raise
+
+    return wrapped
+
+
+class EstimatorNode(Node):
+    """The live estimator node; see the module docstring."""
+
+    def __init__(self, base_config: Path | None = None, coefficients: str | None = None, **kwargs):
+        super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True, **kwargs)
+        self.config = self._configure(base_config, coefficients)
+        node = self.config.node
+        self.model_info, coeffs = self._load_model(node.coefficients)
+        settings = StreamSettings.from_config(self.config)
+        self.estimator = StreamingEstimator(self.config.model(coeffs), self.config.noise, settings)
+        started = time.monotonic()
+        self.estimator.warm_up()
+        self.get_logger().info(
+            f"EKF compiled for chunks {list(settings.chunk_sizes)} in {time.monotonic() - started:.1f} s"
+        )
+
+        topics = self.config.topics
+        self.frame_id = topics.frame_id
+        out_qos = qos(node.output_reliability, node.output_depth)
+        self.per_sample = node.output_mode in ("per_sample", "both")
+        self.batched = node.output_mode in ("batch", "both")
+        if self.per_sample:
+            self.pub_point = self.create_publisher(PointStamped, topics.displacement_estimate, out_qos)
+            self.pub_twist = self.create_publisher(TwistWithCovarianceStamped, topics.velocity, out_qos)
+            self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, topics.acceleration, out_qos)
+            self.pub_wrench = self.create_publisher(WrenchStamped, topics.contact_force, out_qos)
+            self.layouts = {name: messages.FixedLayout(self.frame_id, count)
+                            for name, count in messages.FLOAT64_FIELDS.items()}
+        if self.batched:
+            self.pub_batch = self.create_publisher(PointCloud2, node.batch_output_topic, out_qos)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        self._inbox = Inbox()
+        self._lock = threading.Lock()  # estimator, publishers of estimates and diagnostics state
+        self._wake = threading.Event()
+        self._stopping = False
+        self.messages = self.batch_messages = self.malformed = self.internal_errors = 0
+        self._summary = None
+        self._diagnostics = DiagnosticsState()
+        self._latency = LatencyHistogram()
+        self._diagnostics.restart(self.estimator.counts, 0)
+        self._last_diagnostics = 0.0
+        self._event_diagnostics_due = False
+
+        in_qos = qos(node.input_reliability, node.input_depth)
+        self.create_subscription(PointStamped, topics.displacement, self._on_sample, in_qos, raw=True)
+        self.create_subscription(PointCloud2, node.batch_topic, self._on_batch, in_qos)
+        # Without a worker the timer runs the EKF on what is pending; with one, it only sends event diagnostics.
+        timer_period = EVENT_DIAGNOSTICS_INTERVAL / 2 if node.worker else node.flush_period
+        self.create_timer(timer_period, self._on_flush_timer)
+        self.create_timer(node.diagnostics_period, self.publish_diagnostics)
+        self._worker = None
+        if node.worker:
+            # Two busy threads share the GIL: switch every 0.5 ms instead of 5 ms, or latency waits on it.
+            sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+            self._worker = threading.Thread(target=self._work, name="touchdown_ekf", daemon=True)
+            self._worker.start()
+        self.get_logger().info(
+            f"listening on {topics.displacement} (PointStamped) and {node.batch_topic} (PointCloud2), "
+            f"{node.input_reliability}; model: {self.model_info.message}"
+        )
+        self.publish_diagnostics()
+
+    # ------------------------------------------------------------------ setup
+    def _configure(self, base_config: Path | None, coefficients: str | None) -> Config:
+        """Rig parameters: the base file (--config, else the reference rig) under the ROS parameters."""
+        base = load_config(base_config)
+        for name, value in base.parameters.items():
+            if not self.has_parameter(name):
+                self.declare_parameter(name, value)
+        flat = {
+            name: parameter.value
+            for name, parameter in self.get_parameters_by_prefix("").items()
+            if name not in ROS_PARAMETERS and not name.startswith("qos_overrides.")
+        }
+        if "coefficients" in flat:  # `-p coefficients:=FILE` is accepted as node.coefficients
+            flat["node.coefficients"] = flat.pop("coefficients")
+        if coefficients is not None:
+            flat["node.coefficients"] = coefficients
+        source = str(base_config) if base_config else base.source
+        return config_from_parameters(flat, source=f"{source} + ROS parameters of {self.get_fully_qualified_name()}")
+
+    def _load_model(self, path: str):
+        """(ModelInfo, coefficients or None); a bad coefficient file falls back to the constant model."""
+        identity = {"rig_fingerprint": self.config.fingerprint()[:16]}
+        if not path:
+            return ModelInfo(OK, "constant model (node.coefficients is empty)",
+                             {"model": "constant", "coefficients": "", **identity}), None
+        try:
+            loaded = load_coefficients(path, self.config)
+        except (CoefficientFileError, OSError, ValueError) as error:  # missing, unreadable, another rig
+            self.get_logger().error(f"{error}; running the constant model instead")
+            return ModelInfo(ERROR, f"coefficient file refused, running the constant model: {error}",
+                             {"model": "constant (fallback)", "coefficients": path, "error": str(error),
+                              **identity}), None
+        info = ModelInfo(
+            OK,
+            f"PKBKR coefficients from {path}",
+            {"model": "pkbkr", "coefficients": path, "coefficients_sha256": sha256_of(path)[:16],
+             "trained_on_bags": len(loaded.training.bags), **identity},
+        )
+        return info, loaded.coeffs
+
+    # ------------------------------------------------------------------ input
+    @quiet_at_shutdown
+    def _on_sample(self, data: bytes) -> None:
+        self.messages += 1
+        try:
+            stamp, x, y, z = messages.decode_point(data)
+        except messages.MessageError as error:
+            self._refuse_message(error)
+            return
+        if self._inbox.add_sample(stamp, x, y, z) >= self.config.node.flush_samples:
+            self._due()
+
+    @quiet_at_shutdown
+    def _on_batch(self, message: PointCloud2) -> None:
+        self.batch_messages += 1
+        try:
+            stamps, xyz = messages.batch_samples(message)
+        except messages.MessageError as error:
+            self._refuse_message(error)
+            return
+        if self._inbox.add_block(stamps, xyz) >= self.config.node.flush_samples:
+            self._due()
+
+    def _refuse_message(self, error: Exception) -> None:
+        self.malformed += 1
+        self.get_logger().warning(f"message refused: {error}", throttle_duration_sec=1.0)
+
+    def _due(self) -> None:
+        """Enough samples are pending: run the estimator (in the worker thread when there is one)."""
+        if self._worker is not None:
+            self._wake.set()
+        else:
+            self.flush()
+
+    @quiet_at_shutdown
+    def _on_flush_timer(self) -> None:
+        if self._worker is None:
+            self.flush()
+        if self._event_diagnostics_due and time.monotonic() - self._last_diagnostics >= EVENT_DIAGNOSTICS_INTERVAL:
+            self.publish_diagnostics()
+
+    def _work(self) -> None:
+        """Worker thread: the EKF (which releases the GIL) runs while the executor keeps receiving."""
+        period = self.config.node.flush_period
+        while not self._stopping:
+            self._wake.wait(timeout=period)
+            self._wake.clear()
+            try:
+                self.flush()
+            except RCLError:
+                if self.context.ok():
+                    raise
+                return
+
+    def stop_worker(self) -> None:
+        if self._worker is not None:
+            self._stopping = True
+            self._wake.set()
+            self._worker.join(timeout=5.0)
+            self._worker = None
+
+    # ------------------------------------------------------------------ estimation and output
+    def flush(self) -> None:
+        """Run the estimator on the pending samples and publish what it returns."""
+        taken = self._inbox.take()
+        if taken is None:
+            return
+        stamps, xyz, oldest_ns = taken
+        with self._lock:
+            try:
+                update = self.estimator.push(stamps, xyz)
+            except Exception as error:  # a bug must not stop the node: report it loudly, keep going
+                self.internal_errors += 1
+                self.get_logger().error(f"estimator failed on {len(stamps)} samples: {error!r}",
+                                        throttle_duration_sec=1.0)
+                return
+            self._publish(update.estimates)
+            self._handle(update.events)
+            self._diagnostics.add_processing(time.monotonic_ns() - oldest_ns)
+
+    def finish(self) -> None:
+        """End of input: publish what is held and close a touchdown in progress."""
+        self.stop_worker()
+        self.flush()
+        with self._lock:
+            update = self.estimator.finish()
+            self._publish(update.estimates)
+            self._handle(update.events)
+        self.publish_diagnostics()
+
+    def _publish(self, out: StreamOutput) -> None:
+        n = len(out.stamps_ns)
+        if n == 0:
+            return
+        stamps = out.stamps_ns
+        if self.per_sample:
+            zeros = np.zeros((n, 3))
+            layouts = self.layouts
+            points = messages.encode_fixed(layouts["PointStamped"], stamps, out.state[:, :3])
+            twists = messages.encode_fixed(
+                layouts["TwistWithCovarianceStamped"], stamps,
+                np.hstack([out.state[:, 4:7], zeros, messages.covariance6(out.state_cov[:, 4:, 4:], n)]),
+            )
+            accels = messages.encode_fixed(
+                layouts["AccelWithCovarianceStamped"], stamps,
+                np.hstack([out.acceleration, zeros, messages.covariance6(out.acceleration_cov, n)]),
+            )
+            wrenches = messages.encode_fixed(layouts["WrenchStamped"], stamps, np.hstack([out.force_xyz, zeros]))
+            publishers = (self.pub_point, self.pub_twist, self.pub_accel, self.pub_wrench)
+            with contextlib.ExitStack() as handles:
+                for publisher in publishers:
+                    handles.enter_context(publisher.handle)
+                point_raw, twist_raw, accel_raw, wrench_raw = (raw_publish(p) for p in publishers)
+                for point, twist, accel, wrench in zip(points, twists, accels, wrenches):
+                    point_raw(point)
+                    twist_raw(twist)
+                    accel_raw(accel)
+                    wrench_raw(wrench)
+        if self.batched:
+            self.pub_batch.publish(self._batch_message(out))
+        published = time.time_ns()
+        self._diagnostics.add_estimates(out, published)
+        self._latency.add(published - stamps)
+
+    def _batch_message(self, out: StreamOutput) -> PointCloud2:
+        stamps = out.stamps_ns
+        t = (stamps - stamps[0]) / 1e9
+        velocity_variance = np.diagonal(out.state_cov[:, 4:, 4:], axis1=1, axis2=2)
+        acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
+        columns = np.column_stack([
+            t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
+            velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact,
+        ])  # fmt: skip
+        return messages.cloud(int(stamps[0]), self.frame_id, messages.BATCH_OUTPUT_FIELDS, columns)
+
+    def _handle(self, events: Sequence[StreamEvent]) -> None:
+        logger = self.get_logger()
+        for event in events:
+            self._diagnostics.add_event(event)
+            if event.kind == "touchdown_end":
+                self._summary = event.summary
+                logger.info(event.message)
+            elif event.kind == "force_alarm":
+                logger.error(event.message, throttle_duration_sec=1.0)
+            elif event.kind in ("clock_jump", "resync"):
+                logger.warning(event.message)
+            else:
+                logger.info(event.message)
+            self._event_diagnostics_due = True
+
+    @quiet_at_shutdown
+    def publish_diagnostics(self) -> None:
+        """Publish /diagnostics now and start a new period."""
+        with self._lock:
+            self._publish_diagnostics()
+
+    def _publish_diagnostics(self) -> None:
+        node = self.config.node
+        array = messages.diagnostic_array(
+            time.time_ns(),
+            statuses(
+                self._diagnostics,
+                self.estimator.counts,
+                phase=self.estimator.phase,
+                levitated_z=None if self.estimator.levitated_reference is None
+                else float(self.estimator.levitated_reference[2]),
+                model=self.model_info,
+                summary=self._summary,
+                histogram=self._latency,
+                messages=self.messages,
+                batch_messages=self.batch_messages,
+                malformed=self.malformed,
+                internal_errors=self.internal_errors,
+                pending=self._inbox.count,
+                alarm_force=node.alarm_force,
+                hardware_id=self.config.source.split(" + ")[0],
+            ),
+        )
+        self.pub_diagnostics.publish(array)
+        self._diagnostics.restart(self.estimator.counts, self.messages)
+        self._last_diagnostics = time.monotonic()
+        self._event_diagnostics_due = False
+
+
+def make_executor(kind: str, context=None):
+    """rclpy EventsExecutor (events) or SingleThreadedExecutor (single)."""
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
+
+
+def spin(executor, context=None, keep_going=lambda: True) -> None:
+    """Spin until the context shuts down (or keep_going() turns False).
+
+    In the jazzy wheel, EventsExecutor.spin() (and spinning without a timeout)
+    neither runs timers nor returns at shutdown; spinning in 0.2 s slices does both.
+    """
+    never = rclpy.task.Future()
+    while rclpy.ok(context=context) and keep_going():
+        executor.spin_until_future_complete(never, timeout_sec=0.2)
+
+
+def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="touchdown_estimator",
+        description="Live touchdown estimator: /amb/displacement in, /touchdown/* and /diagnostics out.",
+        epilog="ROS arguments go after --ros-args, e.g. --ros-args --params-file rig.yaml -p node.alarm_force:=2.0e+4",
+    )
+    parser.add_argument("--config", type=Path, help="rig YAML (ROS 2 parameter-file form) used as the base parameters")
+    parser.add_argument("--coefficients", help="PKBKR coefficient file (overrides node.coefficients)")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv if argv is None else [sys.argv[0], *argv])
+    args = parse_arguments(rclpy.utilities.remove_ros_args(argv)[1:])
+    enable_compilation_cache()
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = EstimatorNode(args.config, args.coefficients)
+        executor = make_executor(node.config.node.executor)
+        executor.add_node(node)
+        node.get_logger().info(f"ready ({node.config.node.executor} executor)")
+        spin(executor)
+    except ConfigError as error:
+        print(f"touchdown_estimator: configuration error: {error}", file=sys.stderr)
+        return EXIT_CONFIG
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # a signal shut the context down while a callback was publishing: a normal stop
+    finally:
+        if node is not None:
+            node.stop_worker()
+            if rclpy.ok():
+                try:
+                    node.finish()
+                except Exception as error:  # shutting down: report, do not mask the exit
+                    print(f"touchdown_estimator: while finishing: {error}", file=sys.stderr)
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
