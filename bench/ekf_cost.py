@@ -24,7 +24,7 @@ from touchdown_ros.io.config import load_config
 
 def numpy_model(model):
     """The same eq. 5-12 model written with numpy, for the filterpy baseline."""
-    rig, p, kernel, coeffs = model
+    rig, p, kernel, coeffs = model[:4]
     T_R, T_Z = np.asarray(kernel.T_R), np.asarray(kernel.T_Z)
     a_R, a_Z = np.asarray(coeffs.alpha_R), np.asarray(coeffs.alpha_Z)
 

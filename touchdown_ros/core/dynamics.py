@@ -68,15 +68,20 @@ def phi(model: Model, xi: Array) -> Array:
     forces = contact_forces(model, xi)
     unbalance = rig.eccentricity * rig.speed**2
     theta = xi[THETA]
+    F_x, F_y, F_z = forces.F_x, forces.F_y, forces.F_z
+    effects = getattr(model, "effects", None)
+    if effects:  # static: no effects -> the paper's phi, unchanged
+        extra = effects.force(xi, rig)
+        F_x, F_y, F_z = F_x + extra[0], F_y + extra[1], F_z + extra[2]
     return jnp.stack(
         [
             xi[XDOT],
             xi[YDOT],
             xi[ZDOT],
             jnp.asarray(rig.speed, dtype=xi.dtype),
-            forces.F_x / rig.mass + unbalance * jnp.cos(theta),
-            forces.F_y / rig.mass + unbalance * jnp.sin(theta),
-            forces.F_z / rig.mass - rig.gravity,
+            F_x / rig.mass + unbalance * jnp.cos(theta),
+            F_y / rig.mass + unbalance * jnp.sin(theta),
+            F_z / rig.mass - rig.gravity,
         ]
     )
 

@@ -6,6 +6,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
+from touchdown_ros.core.effects import Effects
+
 #: Indices into the state xi = [x y z theta xdot ydot zdot] (paper eq. 11).
 X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
 STATE_SIZE = 7
@@ -76,6 +78,7 @@ class Model(NamedTuple):
     nominal: Nominal
     kernel: Kernel
     coeffs: Coefficients
+    effects: Effects = Effects()  # add-on force terms (core.effects); none: the paper's model
 
 
 class FilterNoise(NamedTuple):

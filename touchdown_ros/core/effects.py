@@ -1,0 +1,244 @@
+"""Add-on physical effects: named force terms added to the paper's model (issue #5).
+
+An effect is a plain jnp function ``force(xi, params, rig) -> (3,)``: the force on the
+rotor in N along the sensor x, y, z axes at state xi = [x y z theta xdot ydot zdot],
+with ``params`` a dict name -> scalar of its physical parameters and ``rig`` the
+`Rig`. `dynamics.phi` adds sum(forces) / m to the accelerations.
+
+`Effects` is the JAX container held by `Model.effects`: the functions (and names) are
+static aux data, the parameter values are traced children, so jit/grad/vmap see the
+parameters and a change of which effects are active recompiles. With no effects
+(the default) phi is the paper's model unchanged, at the same cost.
+
+Library (`LIBRARY`): axial_load, radial_load, magnetic_stiffness, contact_exponent,
+viscous_friction, contact_angle_coupling, brake_decay. Not modelled here: a sensor
+offset acts on the measurement, not on the dynamics; it is left out.
+
+A user-written effect is registered by dotted path ``"package.module:function"``;
+the function carries its parameters as an attribute ``parameters`` (name ->
+(default, unit, description)) or via the `effect` decorator below.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+# state indices as in core.types (not imported: types imports this module)
+X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
+
+ForceFunction = Callable[[Array, Mapping[str, Array], object], Array]
+ENTRY_POINT_GROUP = "touchdown_ros.effects"
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A named force term with named physical parameters (name -> (default, unit, description))."""
+
+    name: str
+    force: ForceFunction
+    parameters: Mapping[str, tuple[float, str, str]]
+    description: str = ""
+
+    def defaults(self) -> dict[str, float]:
+        return {k: float(v[0]) for k, v in self.parameters.items()}
+
+
+def effect(name: str, parameters: Mapping[str, tuple[float, str, str]], description: str = ""):
+    """Decorator making a plain force function into an `Effect` (usable by dotted path)."""
+
+    def wrap(function: ForceFunction) -> Effect:
+        return Effect(name=name, force=function, parameters=dict(parameters), description=description or (function.__doc__ or ""))
+
+    return wrap
+
+
+@jax.tree_util.register_pytree_node_class
+class Effects:
+    """Active effects: static (names, functions), traced parameters (tuple of dicts)."""
+
+    def __init__(self, effects: tuple[Effect, ...] = (), params: tuple[Mapping[str, Array], ...] | None = None):
+        self.effects = tuple(effects)
+        if params is None:
+            params = tuple(e.defaults() for e in self.effects)
+        self.params = tuple(dict(p) for p in params)
+
+    # pytree protocol: the functions are aux data (hashable by identity), the values children
+    def tree_flatten(self):
+        return (self.params,), self.effects
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.effects = aux
+        obj.params = tuple(children[0])
+        return obj
+
+    def __len__(self) -> int:
+        return len(self.effects)
+
+    def __bool__(self) -> bool:
+        return bool(self.effects)
+
+    def __repr__(self) -> str:
+        return f"Effects({', '.join(e.name for e in self.effects)})"
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(e.name for e in self.effects)
+
+    def values(self) -> dict[str, dict[str, float]]:
+        """{effect name: {parameter: value}} as plain floats (for coefficient files and reports)."""
+        return {e.name: {k: float(v) for k, v in p.items()} for e, p in zip(self.effects, self.params)}
+
+    def with_values(self, values: Mapping[str, Mapping[str, float]]) -> "Effects":
+        params = tuple({k: values.get(e.name, {}).get(k, p[k]) for k in p} for e, p in zip(self.effects, self.params))
+        return Effects(self.effects, params)
+
+    def force(self, xi: Array, rig) -> Array:
+        """Sum of the active effects' forces (3,), N."""
+        total = jnp.zeros(3, dtype=xi.dtype)
+        for e, p in zip(self.effects, self.params):
+            total = total + jnp.asarray(e.force(xi, p, rig), dtype=xi.dtype)
+        return total
+
+
+# ---------------------------------------------------------------- library
+
+def _radial(xi, rig):
+    x, y = xi[X], xi[Y]
+    r = jnp.sqrt(x * x + y * y + 1e-30)
+    return r, x / r, y / r
+
+
+def _axial_load(xi, p, rig):
+    """Constant downward axial load (e.g. a test-rig load cell), N."""
+    return jnp.stack([0.0 * xi[Z], 0.0 * xi[Z], -p["force"] + 0.0 * xi[Z]])
+
+
+def _radial_load(xi, p, rig):
+    """Constant radial load in the sensor frame, N."""
+    zero = 0.0 * xi[Z]
+    return jnp.stack([p["force_x"] + zero, p["force_y"] + zero, zero])
+
+
+def _magnetic_stiffness(xi, p, rig):
+    """Residual AMB / permanent-magnet negative stiffness: force k_m * displacement outward (x, y, z)."""
+    return jnp.stack([p["k_radial"] * xi[X], p["k_radial"] * xi[Y], p["k_axial"] * xi[Z]])
+
+
+def _contact_exponent(xi, p, rig):
+    """Hertz-like correction of the axial contact: + K d^n (d axial deformation) in contact."""
+    d = -(xi[Z] + rig.axial_clearance)
+    dd = jnp.where(d > 0.0, d, 0.0)
+    safe = jnp.where(d > 0.0, dd / 1e-5, 1.0)
+    f = jnp.where(d > 0.0, p["K"] * safe ** p["n"], 0.0)  # K in N at 10 um deformation
+    zero = 0.0 * xi[Z]
+    return jnp.stack([zero, zero, f])
+
+
+def _viscous_friction(xi, p, rig):
+    """Velocity-dependent (viscous / windage) drag on the rotor centre, N s/m."""
+    return jnp.stack([-p["c_radial"] * xi[XDOT], -p["c_radial"] * xi[YDOT], -p["c_axial"] * xi[ZDOT]])
+
+
+def _contact_angle_coupling(xi, p, rig):
+    """Axial force from radial contact through the contact angle: F_z = tan(beta) * F_n (F_n ~ k d)."""
+    r, c, s = _radial(xi, rig)
+    d = r - rig.radial_clearance
+    f_n = jnp.where(d > 0.0, p["k_radial"] * d, 0.0)
+    zero = 0.0 * xi[Z]
+    return jnp.stack([zero, zero, p["tan_beta"] * f_n])
+
+
+def _brake_decay(xi, p, rig):
+    """Unbalance correction for a braked rotor: speed omega (1 - rate t), t = theta / omega.
+
+    The model's unbalance is m e omega^2 (cos, sin) theta; this adds m e (omega_t^2 - omega^2).
+    """
+    t = xi[THETA] / rig.speed
+    w = rig.speed * jnp.maximum(1.0 - p["rate"] * t, 0.0)
+    a = rig.mass * rig.eccentricity * (w * w - rig.speed**2)
+    return jnp.stack([a * jnp.cos(xi[THETA]), a * jnp.sin(xi[THETA]), 0.0 * xi[Z]])
+
+
+LIBRARY: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect("axial_load", _axial_load, {"force": (1000.0, "N", "constant downward axial load")}, _axial_load.__doc__),
+        Effect(
+            "radial_load",
+            _radial_load,
+            {"force_x": (100.0, "N", "radial load along x"), "force_y": (100.0, "N", "radial load along y")},
+            _radial_load.__doc__,
+        ),
+        Effect(
+            "magnetic_stiffness",
+            _magnetic_stiffness,
+            {"k_radial": (1.0e5, "N/m", "radial negative stiffness"), "k_axial": (1.0e5, "N/m", "axial negative stiffness")},
+            _magnetic_stiffness.__doc__,
+        ),
+        Effect(
+            "contact_exponent",
+            _contact_exponent,
+            {"K": (100.0, "N", "force at 10 um axial deformation"), "n": (1.5, "1", "contact exponent")},
+            _contact_exponent.__doc__,
+        ),
+        Effect(
+            "viscous_friction",
+            _viscous_friction,
+            {"c_radial": (10.0, "N s/m", "radial drag"), "c_axial": (10.0, "N s/m", "axial drag")},
+            _viscous_friction.__doc__,
+        ),
+        Effect(
+            "contact_angle_coupling",
+            _contact_angle_coupling,
+            {"tan_beta": (0.1, "1", "tangent of the contact angle"), "k_radial": (1.0e8, "N/m", "radial contact stiffness")},
+            _contact_angle_coupling.__doc__,
+        ),
+        Effect("brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")}, _brake_decay.__doc__),
+    )
+}
+
+
+def resolve(name: str) -> Effect:
+    """A library effect by name, a user effect by dotted path "module:attr", or an entry point."""
+    if name in LIBRARY:
+        return LIBRARY[name]
+    if ":" in name:
+        module, _, attr = name.partition(":")
+        obj = getattr(importlib.import_module(module), attr)
+        if isinstance(obj, Effect):
+            return obj
+        if callable(obj):
+            parameters = getattr(obj, "parameters", {})
+            return Effect(name=name, force=obj, parameters=dict(parameters), description=obj.__doc__ or "")
+        raise ValueError(f"effect {name!r} is neither an Effect nor a function")
+    try:
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINT_GROUP):
+            if ep.name == name:
+                return resolve(ep.value)
+    except Exception:  # pragma: no cover - metadata problems are reported below
+        pass
+    raise ValueError(f"unknown effect {name!r}: use one of {sorted(LIBRARY)} or 'module:function'")
+
+
+def build(names, values: Mapping[str, Mapping[str, float]] | None = None) -> Effects:
+    """Effects for the given names with parameters defaulted then overridden by `values`."""
+    effs = tuple(resolve(n) for n in names)
+    values = values or {}
+    params = tuple({k: float(values.get(e.name, {}).get(k, v)) for k, v in e.defaults().items()} for e in effs)
+    return Effects(effs, params)
+
+
+def regressors(effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None) -> Array:
+    """d force / d parameters at xi: (3, n_params), for linear-in-parameter ranking (diagnose)."""
+    p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}
+    jac = jax.jacfwd(lambda p: effect_.force(xi, p, rig))(p0)
+    return jnp.stack([jac[k] for k in p0], axis=-1)
