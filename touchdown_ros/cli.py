@@ -54,12 +54,13 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from touchdown_ros.report import plot_estimate, write_summaries
 
     config = load_config(args.config)
-    coeffs = None
+    coeffs = effects = None
     if args.coeffs is not None:
         from touchdown_ros.io.coefficients import load_coefficients
 
-        coeffs = load_coefficients(args.coeffs, config).coeffs
-    estimator = estimator_for(config, coeffs)
+        loaded = load_coefficients(args.coeffs, config)
+        coeffs, effects = loaded.coeffs, loaded.effects
+    estimator = estimator_for(config, coeffs, effects)
     args.out.mkdir(parents=True, exist_ok=True)
     targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
     for target in targets:
@@ -104,14 +105,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from touchdown_ros.evaluate import compare, cross_validate, write_tables
     from touchdown_ros.io.coefficients import load_coefficients
     from touchdown_ros.report import plot_evaluation
+    from touchdown_ros.train import Trainable
 
     config = load_config(args.config)
     full = load_coefficients(args.coeffs, config)
     lam = full.training.regularisation
+    trained = Trainable(full.coeffs, full.effects)
     if args.no_cv:
-        per_bag = [full.coeffs] * len(args.bags)
+        per_bag = [trained] * len(args.bags)
     else:
-        per_bag = cross_validate(config, args.bags, full.coeffs, lam, args.cv_steps)
+        per_bag = cross_validate(config, args.bags, trained, lam, args.cv_steps)
     comparisons = compare(config, args.bags, per_bag)
     aggregate = write_tables(comparisons, args.out)
     names = [b.name for b in args.bags]

@@ -10,11 +10,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from touchdown_ros.core.metrics import peak_errors_per_impact, relative_peak_error, rmse
-from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import Config
 from touchdown_ros.offline import BagEstimate, estimate_bag, estimator_for
 from touchdown_ros.progress import progress
-from touchdown_ros.train import TrainingData, fit, load_training_data, make_objective
+from touchdown_ros.train import Trainable, TrainingData, fit, load_training_data, make_objective
 
 #: Force above which a sample counts as part of an impact, N (about a third of the rotor weight).
 IMPACT_THRESHOLD = 800.0
@@ -58,12 +57,13 @@ def compare_metrics(result: BagEstimate) -> dict[str, Any]:
 def cross_validate(
     config: Config,
     bags: Sequence[Path],
-    full: Coefficients,
+    full: Trainable,
     regularisation: float,
     steps: int,
     duration: float | None = None,
-) -> list[Coefficients]:
-    """Coefficients for each bag trained on all the other bags (warm-started from the full fit)."""
+) -> list[Trainable]:
+    """Coefficients (and effect parameters) for each bag trained on all the other bags,
+    warm-started from the full fit."""
     data = load_training_data(config, bags, duration)
     length = max(len(r) for r in data.records)
     objective = make_objective(config, regularisation)
@@ -72,7 +72,7 @@ def cross_validate(
         keep = [i for i in range(len(bags)) if i != held_out]
         fold = TrainingData(tuple(data.paths[i] for i in keep), tuple(data.records[i] for i in keep))
         result = fit(config, fold, regularisation, full, steps, objective=objective, length=length, stream=_Quiet())
-        folds.append(result.coeffs)
+        folds.append(Trainable(result.coeffs, result.effects))
     return folds
 
 
@@ -84,13 +84,15 @@ class _Quiet:
         pass
 
 
-def compare(config: Config, bags: Sequence[Path], per_bag_coeffs: Sequence[Coefficients]) -> list[BagComparison]:
-    """Estimate each bag with the constant model and with its PKBKR coefficients."""
+def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) -> list[BagComparison]:
+    """Estimate each bag with the constant model (the rig's effects) and with its trained model."""
     estimator = estimator_for(config)
     results = []
-    for path, coeffs in progress(zip(bags, per_bag_coeffs), len(bags), "estimate both methods"):
+    for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
         constant = estimate_bag(config, path, estimator)
-        pkbkr = estimate_bag(config, path, lambda *a, **k: estimator(*a, **k, coeffs=coeffs))
+        pkbkr = estimate_bag(
+            config, path, lambda *a, **k: estimator(*a, **k, coeffs=trained.coeffs, effects=trained.effects)
+        )
         results.append(
             BagComparison(Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)})
         )

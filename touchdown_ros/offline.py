@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.estimate import Estimate, Estimator, detect_drop, make_estimator, to_grid
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
@@ -37,9 +38,10 @@ class BagEstimate:
     summary: dict[str, Any]
 
 
-def estimator_for(config: Config, coeffs: Coefficients | None = None) -> Estimator:
-    """The compiled estimator of a rig (constant model unless coefficients are given)."""
-    return make_estimator(config.model(coeffs), config.noise, config.sample_period)
+def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Estimator:
+    """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
+    effects unless others, e.g. a coefficient file's, are given)."""
+    return make_estimator(config.model(coeffs, effects), config.noise, config.sample_period)
 
 
 def estimate_bag(config: Config, path: str | Path, estimator: Estimator) -> BagEstimate:

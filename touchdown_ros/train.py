@@ -5,12 +5,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import numpy as np
 import scipy.optimize
+from jax.flatten_util import ravel_pytree
 
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.estimate import detect_drop, to_grid
 from touchdown_ros.core.training import Batch, loss, make_batch
 from touchdown_ros.core.types import Coefficients
@@ -31,6 +33,7 @@ class TrainingData:
 @dataclass(frozen=True)
 class TrainingResult:
     coeffs: Coefficients
+    effects: Effects
     initial_loss: float
     final_loss: float
     steps: int
@@ -56,84 +59,118 @@ def load_training_data(config: Config, paths: Sequence[str | Path], duration: fl
     return TrainingData(tuple(Path(p) for p in paths), tuple(records))
 
 
-def _flatten(coeffs: Coefficients) -> np.ndarray:
-    return np.concatenate([np.ravel(coeffs.alpha_R), np.ravel(coeffs.alpha_Z)])
+class Trainable(NamedTuple):
+    """What the trainer fits: the PKBKR coefficients and the active effects' parameters."""
+
+    coeffs: Coefficients
+    effects: Effects
 
 
-def _unflatten(theta: np.ndarray, template: Coefficients) -> Coefficients:
-    split = np.size(template.alpha_R)
-    return Coefficients(
-        np.reshape(theta[:split], np.shape(template.alpha_R)), np.reshape(theta[split:], np.shape(template.alpha_Z))
+def _scales(effects: Effects) -> Effects:
+    """Each effect parameter's magnitude (its starting value, at least 1e-6): the optimiser works
+    on parameter / scale so that a load in N and a ratio share one step length."""
+    return Effects(effects.effects, tuple({k: max(abs(float(v)), 1e-6) for k, v in p.items()} for p in effects.params))
+
+
+def _apply_scale(scaled: Effects, scales: Effects, inverse: bool = False) -> Effects:
+    combine = (lambda v, s: v / s) if inverse else (lambda v, s: v * s)
+    return Effects(
+        scaled.effects, tuple({k: combine(v, s[k]) for k, v in p.items()} for p, s in zip(scaled.params, scales.params))
     )
 
 
 def make_objective(config: Config, regularisation: float) -> Callable:
-    """Jitted (loss, gradient) of eq. 18 in the coefficients; the batch is an argument, so
-    batches of one shape (e.g. the folds of a cross-validation) share one compilation."""
+    """Jitted (loss, gradient) of eq. 18 in (coefficients, scaled effect parameters); the batch
+    is an argument, so batches of one shape (e.g. cross-validation folds) share one compilation."""
     model = config.model()
 
-    @jax.jit
-    def value_and_grad(coeffs: Coefficients, batch: Batch):
-        return jax.value_and_grad(loss)(coeffs, model, config.noise, config.sample_period, batch, regularisation)
+    def objective(trainable: Trainable, scales: Effects, batch: Batch) -> jax.Array:
+        effects = _apply_scale(trainable.effects, scales)
+        return loss(trainable.coeffs, model, config.noise, config.sample_period, batch, regularisation, effects)
 
-    return value_and_grad
+    return jax.jit(jax.value_and_grad(objective))
 
 
 def fit(
     config: Config,
     data: TrainingData,
     regularisation: float,
-    initial: Coefficients | None = None,
+    initial: Coefficients | Trainable | None = None,
     max_steps: int = 40,
-    on_step: Callable[[int, float, Coefficients], None] | None = None,
+    on_step: Callable[[int, float, Trainable], None] | None = None,
     stream=sys.stderr,
     objective: Callable | None = None,
     length: int | None = None,
 ) -> TrainingResult:
-    """Minimise eq. 18 with L-BFGS from initial (default all alpha = 0, the constant model).
+    """Minimise eq. 18 with L-BFGS from `initial` (default: all alpha = 0, the constant model,
+    and the rig's effects at their configured values).
 
     objective: a `make_objective` result to reuse; length: pad records to this many samples.
     """
     start = time.perf_counter()
-    template = initial if initial is not None else Coefficients.zeros(config.kernel)
+    if initial is None or isinstance(initial, Coefficients):
+        initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
+    scales = _scales(initial.effects)
     batch = make_batch(list(data.records), np.asarray(config.noise.initial), length)
     objective = objective or make_objective(config, regularisation)
+    theta0, unravel = ravel_pytree(Trainable(initial.coeffs, _apply_scale(initial.effects, scales, inverse=True)))
+    theta0 = np.asarray(theta0, dtype=float)
+
+    def physical(theta: np.ndarray) -> Trainable:
+        scaled = unravel(theta)
+        return Trainable(scaled.coeffs, _apply_scale(scaled.effects, scales))
+
     history: list[float] = []
 
     def fun(theta: np.ndarray):
-        value, grad = objective(_unflatten(theta, template), batch)
+        value, grad = objective(unravel(theta), scales, batch)
         value = float(value)
         if not np.isfinite(value):
             raise FloatingPointError("training loss is not finite; check the bags and the noise settings")
-        return value, _flatten(jax.device_get(grad)).astype(float)
+        return value, np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
 
     def callback(intermediate_result):
         history.append(float(intermediate_result.fun))
         step = len(history)
         elapsed = time.perf_counter() - start
         left = elapsed / step * (max_steps - step)
+        effects = physical(intermediate_result.x).effects
+        shown = "".join(f"  {e}.{k} {v:.5g}" for e, p in effects.values().items() for k, v in p.items())
         print(
-            f"[step {step}/{max_steps}] loss {intermediate_result.fun:.6g}  {elapsed:.1f} s elapsed, <= ~{left:.0f} s left",
+            f"[step {step}/{max_steps}] loss {intermediate_result.fun:.6g}{shown}  "
+            f"{elapsed:.1f} s elapsed, <= ~{left:.0f} s left",
             file=stream,
             flush=True,
         )
         if on_step is not None:
-            on_step(step, float(intermediate_result.fun), _unflatten(intermediate_result.x, template))
+            on_step(step, float(intermediate_result.fun), physical(intermediate_result.x))
 
-    theta0 = _flatten(template)
     initial_loss = fun(theta0)[0]
     print(f"[step 0/{max_steps}] loss {initial_loss:.6g} (compiled in {time.perf_counter() - start:.1f} s)", file=stream)
     result = scipy.optimize.minimize(
         fun, theta0, jac=True, method="L-BFGS-B", callback=callback, options={"maxiter": max_steps}
     )
+    fitted = physical(result.x)
     return TrainingResult(
-        coeffs=_unflatten(result.x, template),
+        coeffs=fitted.coeffs,
+        effects=fitted.effects,
         initial_loss=initial_loss,
         final_loss=float(result.fun),
         steps=int(result.nit),
         seconds=time.perf_counter() - start,
         history=tuple(history),
     )
+
+
+def _merge_effects(active: Effects, started: Effects) -> Effects:
+    """The rig's active effects, starting from a warm-start file's values where it has them.
+
+    The rig YAML decides which effects are fitted; an effect of the file that the rig does not
+    switch on is dropped, with a note, rather than silently kept."""
+    dropped = sorted(set(started.names) - set(active.names))
+    if dropped:
+        print(f"note: the warm-start file's effect(s) {', '.join(dropped)} are not active in the rig; not fitted", file=sys.stderr)
+    return active.with_values(started.values())
 
 
 def checkpoint_path(out: Path) -> Path:
@@ -158,14 +195,17 @@ def train(
     if start_from is not None:
         if resume and not start_from.exists():
             raise FileNotFoundError(f"{start_from}: no checkpoint to resume from")
-        initial = load_coefficients(start_from, config).coeffs
+        loaded = load_coefficients(start_from, config)
+        initial = Trainable(loaded.coeffs, _merge_effects(config.effects, loaded.effects))
     hashes = [{"path": str(p), "sha256": sha256_of(p)} for p in data.paths]
 
     def record(steps: int, final_loss: float | None, **extra) -> TrainingRecord:
         return TrainingRecord(bags=hashes, regularisation=lam, final_loss=final_loss, steps=steps, extra=extra)
 
-    def on_step(step: int, value: float, coeffs: Coefficients) -> None:
-        save_coefficients(checkpoint_path(out), coeffs, config, record(step, value, checkpoint=True))
+    def on_step(step: int, value: float, fitted: Trainable) -> None:
+        save_coefficients(
+            checkpoint_path(out), fitted.coeffs, config, record(step, value, checkpoint=True), fitted.effects
+        )
 
     result = fit(config, data, lam, initial, max_steps, on_step)
     save_coefficients(
@@ -173,6 +213,7 @@ def train(
         result.coeffs,
         config,
         record(result.steps, result.final_loss, initial_loss=result.initial_loss, seconds=round(result.seconds, 2)),
+        result.effects,
     )
     checkpoint_path(out).unlink(missing_ok=True)
     return result

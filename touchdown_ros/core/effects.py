@@ -20,8 +20,10 @@ the function carries its parameters as an attribute ``parameters`` (name ->
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from typing import Callable, Mapping
 
 import jax
@@ -43,6 +45,7 @@ class Effect:
     force: ForceFunction
     parameters: Mapping[str, tuple[float, str, str]]
     description: str = ""
+    source: str = ""  # how to find it again: a library name, "module:function" or an entry point name
 
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
@@ -205,28 +208,37 @@ LIBRARY: dict[str, Effect] = {
 }
 
 
-def resolve(name: str) -> Effect:
-    """A library effect by name, a user effect by dotted path "module:attr", or an entry point."""
-    if name in LIBRARY:
-        return LIBRARY[name]
-    if ":" in name:
-        module, _, attr = name.partition(":")
-        obj = getattr(importlib.import_module(module), attr)
+def resolve(spec: str, name: str | None = None) -> Effect:
+    """A library effect by name, a user effect by dotted path "module:attr", or an entry point
+    of group `touchdown_ros.effects`; `name` renames it (the key of its parameters)."""
+    found = _lookup(spec)
+    return dataclasses.replace(found, name=name or found.name, source=spec)
+
+
+def _lookup(spec: str) -> Effect:
+    if spec in LIBRARY:
+        return LIBRARY[spec]
+    if ":" in spec:
+        module, _, attr = spec.partition(":")
+        try:
+            obj = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as error:
+            raise ValueError(f"effect {spec!r} cannot be imported: {error}") from None
         if isinstance(obj, Effect):
             return obj
         if callable(obj):
-            parameters = getattr(obj, "parameters", {})
-            return Effect(name=name, force=obj, parameters=dict(parameters), description=obj.__doc__ or "")
-        raise ValueError(f"effect {name!r} is neither an Effect nor a function")
-    try:
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINT_GROUP):
-            if ep.name == name:
-                return resolve(ep.value)
-    except Exception:  # pragma: no cover - metadata problems are reported below
-        pass
-    raise ValueError(f"unknown effect {name!r}: use one of {sorted(LIBRARY)} or 'module:function'")
+            parameters = getattr(obj, "parameters", None)
+            if not parameters:
+                raise ValueError(f"effect {spec!r}: the function needs a 'parameters' attribute (name -> (default, unit, text))")
+            return Effect(name=attr, force=obj, parameters=dict(parameters), description=obj.__doc__ or "")
+        raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name == spec:
+            return _lookup(ep.value)
+    raise ValueError(
+        f"unknown effect {spec!r}: use one of {', '.join(sorted(LIBRARY))}, 'module:function' "
+        f"or an entry point of group {ENTRY_POINT_GROUP}"
+    )
 
 
 def build(names, values: Mapping[str, Mapping[str, float]] | None = None) -> Effects:

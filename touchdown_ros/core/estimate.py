@@ -9,6 +9,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.dynamics import contact_forces, phi
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
 
@@ -138,8 +139,9 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
 
     The model is closed over so its constants fold at compile time (about 1.4x faster
     than passing it as an argument); compilation happens once per record length.
-    `estimate(..., coeffs=C)` runs other coefficients of the same rig through a second
-    compiled function that takes them as an argument (one compilation for many sets).
+    `estimate(..., coeffs=C, effects=E)` runs other coefficients (and effect parameters) of the
+    same rig through a second compiled function that takes them as arguments (one compilation
+    for many sets).
     """
 
     def run(model: Model, initial: Belief, etas: Array):
@@ -156,7 +158,9 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         )
 
     run_folded = jax.jit(lambda initial, etas: run(model, initial, etas))
-    run_with_coeffs = jax.jit(lambda coeffs, initial, etas: run(model._replace(coeffs=coeffs), initial, etas))
+    run_with_coeffs = jax.jit(
+        lambda coeffs, effects, initial, etas: run(model._replace(coeffs=coeffs, effects=effects), initial, etas)
+    )
 
     def estimate(
         stamps_ns: np.ndarray,
@@ -164,8 +168,10 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         onset_index: int = 0,
         missing: int = 0,
         coeffs: Coefficients | None = None,
+        effects: Effects | None = None,
     ) -> Estimate:
-        """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on."""
+        """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on,
+        with the compiled model or with other coefficients / effects of the same rig."""
         stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
         initial = initial_belief(etas, np.asarray(noise.initial))
         n = len(etas)
@@ -173,10 +179,12 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         # the NaN rows come after the record (predict-only) and are cut off again.
         padded = np.full((-(-n // PAD_BUCKET) * PAD_BUCKET, 3), np.nan)
         padded[:n] = etas
-        if coeffs is None:
+        if coeffs is None and effects is None:
             outputs = run_folded(initial, jnp.asarray(padded))
         else:
-            outputs = run_with_coeffs(coeffs, initial, jnp.asarray(padded))
+            coeffs = model.coeffs if coeffs is None else coeffs
+            effects = model.effects if effects is None else effects
+            outputs = run_with_coeffs(coeffs, effects, initial, jnp.asarray(padded))
         trimmed = jax.tree.map(lambda a: a[:n], jax.device_get(outputs))
         filtered, smoothed, predicted, innovation, innovation_cov, nis = trimmed
         return Estimate(

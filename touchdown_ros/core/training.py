@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.pkbkr import rkhs_distance
@@ -62,7 +63,16 @@ def output_error(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Ar
     return jnp.sum(squared) / jnp.sum(batch.valid)
 
 
-def loss(coeffs: Coefficients, model: Model, noise: FilterNoise, h: float, batch: Batch, lam: float) -> Array:
-    """Eq. 18 with the output error normalised as in output_error."""
-    trained = model._replace(coeffs=coeffs)
+def loss(
+    coeffs: Coefficients,
+    model: Model,
+    noise: FilterNoise,
+    h: float,
+    batch: Batch,
+    lam: float,
+    effects: Effects | None = None,
+) -> Array:
+    """Eq. 18 with the output error normalised as in output_error; `effects` (with their
+    physical parameters, not penalised) replace the model's when given."""
+    trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
     return output_error(trained, noise, h, batch) + lam * rkhs_distance(model.kernel, coeffs)

@@ -13,7 +13,9 @@ import numpy as np
 import yaml
 
 from touchdown_ros import __version__
-from touchdown_ros.core.types import AXIAL_PARAMETERS, RADIAL_PARAMETERS, Coefficients
+from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.effects import resolve as resolve_effect
+from touchdown_ros.core.types import AXIAL_PARAMETERS, RADIAL_PARAMETERS, Coefficients, Model
 from touchdown_ros.io.config import Config
 
 SCHEMA_VERSION = 1
@@ -40,6 +42,11 @@ class CoefficientFile:
     coeffs: Coefficients
     training: TrainingRecord
     document: Mapping[str, Any]
+    effects: Effects = Effects()  # the add-on effects the coefficients were fitted with
+
+    def model(self, config: Config) -> Model:
+        """The estimator's model with these coefficients and effects."""
+        return config.model(self.coeffs, self.effects)
 
 
 def sha256_of(path: str | Path) -> str:
@@ -55,9 +62,12 @@ def sha256_of(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def save_coefficients(path: str | Path, coeffs: Coefficients, config: Config, training: TrainingRecord) -> Path:
-    """Write the coefficient file atomically (temporary file, then rename)."""
+def save_coefficients(
+    path: str | Path, coeffs: Coefficients, config: Config, training: TrainingRecord, effects: Effects | None = None
+) -> Path:
+    """Write the coefficient file atomically (temporary file, then rename); effects default to the rig's."""
     path = Path(path)
+    effects = config.effects if effects is None else effects
     alpha_R, alpha_Z = np.asarray(coeffs.alpha_R), np.asarray(coeffs.alpha_Z)
     document = {
         "kind": KIND,
@@ -70,6 +80,10 @@ def save_coefficients(path: str | Path, coeffs: Coefficients, config: Config, tr
             "units": "dimensionless, relative to each nominal value: p(s) = f0 * (1 + Q(s, T) alpha)",
             **{name: alpha_R[i].tolist() for i, name in enumerate(RADIAL_PARAMETERS)},
             **{name: alpha_Z[i].tolist() for i, name in enumerate(AXIAL_PARAMETERS)},
+        },
+        "effects": {
+            effect.name: {"source": effect.source or effect.name, "parameters": values}
+            for effect, values in zip(effects.effects, effects.values().values())
         },
         "training": {
             "regularisation": float(training.regularisation),
@@ -138,7 +152,33 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         steps=training.get("steps", 0),
         extra={k: v for k, v in training.items() if k not in ("bags", "regularisation", "final_loss", "steps")},
     )
-    return CoefficientFile(Coefficients(alpha_R, alpha_Z), record, document)
+    return CoefficientFile(Coefficients(alpha_R, alpha_Z), record, document, _load_effects(path, document.get("effects")))
+
+
+def _load_effects(path: Path, table: Any) -> Effects:
+    """The `effects` section: {name: {source, parameters: {parameter: value}}}."""
+    if not table:
+        return Effects()
+    if not isinstance(table, dict):
+        raise CoefficientFileError(f"{path}: 'effects' must map effect names to their source and parameters")
+    chosen, values = [], []
+    for name, entry in table.items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("parameters"), dict):
+            raise CoefficientFileError(f"{path}: effects.{name} needs 'source' and 'parameters'")
+        try:
+            effect = resolve_effect(str(entry.get("source", name)), name=name)
+        except ValueError as error:
+            raise CoefficientFileError(f"{path}: effects.{name}: {error}") from None
+        given = entry["parameters"]
+        if set(given) != set(effect.parameters):
+            raise CoefficientFileError(
+                f"{path}: effects.{name} has parameters {sorted(given)}, the effect expects {sorted(effect.parameters)}"
+            )
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in given.values()):
+            raise CoefficientFileError(f"{path}: effects.{name}: every parameter must be a finite number")
+        chosen.append(effect)
+        values.append({k: float(given[k]) for k in effect.parameters})
+    return Effects(tuple(chosen), tuple(values))
 
 
 def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:

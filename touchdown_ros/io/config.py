@@ -17,6 +17,8 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
+from touchdown_ros.core import effects as effects_library
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.types import Coefficients, FilterNoise, Kernel, Model, Nominal, Rig
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
@@ -96,10 +98,18 @@ class Config:
     source: str = "<built-in>"
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
     node: NodeSettings = field(default_factory=NodeSettings)  # the live node's node.* parameters
+    effects: Effects = field(default_factory=Effects)  # add-on force terms switched on in effects.*
 
-    def model(self, coeffs: Coefficients | None = None) -> Model:
-        """The estimator's model; all alpha = 0 (constant baseline) unless coeffs are given."""
-        return Model(self.rig, self.nominal, self.kernel, coeffs or Coefficients.zeros(self.kernel))
+    def model(self, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Model:
+        """The estimator's model: all alpha = 0 (constant baseline) unless coeffs are given,
+        with this rig's effects unless others are given (a coefficient file's)."""
+        return Model(
+            self.rig,
+            self.nominal,
+            self.kernel,
+            coeffs or Coefficients.zeros(self.kernel),
+            self.effects if effects is None else effects,
+        )
 
     def fingerprint(self) -> str:
         """SHA-256 of what a coefficient file depends on: rig, nominal values and kernel."""
@@ -294,12 +304,38 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         source=source,
         parameters=dict(flat),
         node=_node_settings(read),
+        effects=_effects(read, flat),
     )
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
     if unknown:
         raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}")
     return config
+
+
+def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
+    """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values."""
+    active = read._get("effects.active", [])
+    if not isinstance(active, list) or not all(isinstance(n, str) and n for n in active) or len(set(active)) < len(active):
+        raise ConfigError(f"{read.source}: parameter 'effects.active' must be a list of distinct effect names")
+    user = {k.removeprefix("effects.user."): read.text(k, "") for k in flat if k.startswith("effects.user.")}
+    try:
+        chosen = [effects_library.resolve(user.get(name, name), name=name) for name in active]
+    except (ValueError, ImportError, AttributeError) as error:
+        raise ConfigError(f"{read.source}: effects.active: {error}") from None
+    values = {}
+    for effect in chosen:
+        values[effect.name] = {
+            parameter: read.number(f"effects.{effect.name}.{parameter}", default)
+            for parameter, default in effect.defaults().items()
+        }
+    stray = sorted(k for k in flat if k.startswith("effects.") and k not in read.used and not k.startswith("effects.user."))
+    if stray:
+        raise ConfigError(
+            f"{read.source}: parameter(s) {', '.join(stray)} belong to no active effect "
+            f"(active: {', '.join(active) or 'none'})"
+        )
+    return Effects(tuple(chosen), tuple(values[e.name] for e in chosen))
 
 
 def _node_settings(read: _Reader) -> NodeSettings:

@@ -30,6 +30,7 @@ _SCALARS: dict[str, tuple[float, float, float, bool]] = {
     "brake_deceleration": (400.0, 0.0, math.inf, True),
     "brake_time_constant": (5.0e-3, 0.0, 1.0, False),
     "axial_load": (2000.0, 0.0, math.inf, True),
+    "axial_thrust": (0.0, 0.0, math.inf, True),
     "axial_mount_preload": (3.6e4, 0.0, math.inf, False),
     "axial_mount_span": (1.0e4, 0.0, math.inf, False),
     "regularisation_velocity": (0.01, 0.0, 1.0, False),
@@ -196,6 +197,7 @@ def truth_constants(
         brake_time_constant=values["brake_time_constant"],
         axial_load=load if axial_load else 0.0,
         drop_time=drop_time,
+        axial_thrust=values["axial_thrust"],
     )
 
 

@@ -75,6 +75,7 @@ class Truth(NamedTuple):
     brake_time_constant: float  # s, brake engagement
     axial_load: float  # N, downward, 0 = no loader
     drop_time: float  # s
+    axial_thrust: float = 0.0  # N, amplitude of a once-per-revolution axial force A cos(theta) (a wobbling thrust collar)
 
 
 class Contact(NamedTuple):
@@ -198,7 +199,7 @@ def derivative(p: Truth, t: Array, s: Array) -> Array:
             -p.amb_stiffness * s[Z] - p.amb_damping * s[VZ] + m * p.gravity + p.axial_load,
         ]
     )
-    external = jnp.stack([0.0, 0.0, -m * p.gravity - p.axial_load])
+    external = jnp.stack([0.0, 0.0, -m * p.gravity - p.axial_load + p.axial_thrust * cos_t])
     accel = (c.force + amb + external) / m + jnp.stack([ub_x, ub_y, 0.0])
     return jnp.concatenate([s[VX : VZ + 1], accel, jnp.stack([omega, omega_dot, omega_ring_dot])])
 
