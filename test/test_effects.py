@@ -39,3 +39,86 @@ def test_dotted_path_effect_is_jittable_and_differentiable():
     g = jax.grad(zdd)(e)
     np.testing.assert_allclose(g.params[0]["F_a"], 1.0 / model.rig.mass)
     assert fx.regressors(fx.LIBRARY["axial_load"], xi, model.rig).shape == (3, 1)
+
+
+# ---------------------------------------------------------------- rig YAML, coefficient files, trainer
+
+import pytest  # noqa: E402
+import yaml  # noqa: E402
+
+from touchdown_ros.core.dynamics import rk4_step  # noqa: E402
+from touchdown_ros.io.coefficients import (  # noqa: E402
+    CoefficientFileError,
+    TrainingRecord,
+    load_coefficients,
+    save_coefficients,
+)
+from touchdown_ros.io.config import ConfigError  # noqa: E402
+from touchdown_ros.train import Trainable, TrainingData, fit  # noqa: E402
+
+LOADED = {"effects.active": ["axial_load"], "effects.axial_load.force": 1500.0}
+
+
+def test_rig_yaml_switches_effects_on_with_values_and_user_functions():
+    config = load_config(overrides=LOADED)
+    assert config.effects.values() == {"axial_load": {"force": 1500.0}}
+    assert config.model().effects.names == ("axial_load",)
+    user = load_config(overrides={"effects.active": ["thrust"], "effects.user.thrust": f"{__name__}:_user_force"})
+    assert user.effects.values() == {"thrust": {"F_a": 500.0}}  # the function's default
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"effects.active": ["warp_drive"]}, "unknown effect 'warp_drive'"),
+        ({"effects.active": ["axial_load"], "effects.axial_load.mass": 1.0}, "effects.axial_load.mass"),
+        ({"effects.axial_load.force": 1.0}, "belong to no active effect"),
+        ({"effects.active": ["t"], "effects.user.t": "no_such_module:f"}, "cannot be imported"),
+        ({"effects.active": ["axial_load"], "effects.axial_load.force": "2kN"}, "effects.axial_load.force"),
+    ],
+)
+def test_bad_effect_settings_are_named(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=overrides)
+
+
+def test_coefficient_file_keeps_effects_and_refuses_bad_ones(tmp_path):
+    config = load_config(overrides=LOADED)
+    effects = config.effects.with_values({"axial_load": {"force": 1987.5}})
+    coeffs = config.model().coeffs
+    path = save_coefficients(tmp_path / "c.yaml", coeffs, config, TrainingRecord(), effects)
+    loaded = load_coefficients(path, load_config())  # effects come from the file, not the rig
+    assert loaded.effects.values() == {"axial_load": {"force": 1987.5}}
+    assert loaded.model(load_config()).effects.names == ("axial_load",)
+
+    document = yaml.safe_load(path.read_text())
+    document["effects"]["axial_load"]["parameters"] = {"newtons": 1.0}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(document))
+    with pytest.raises(CoefficientFileError, match="expects"):
+        load_coefficients(tmp_path / "bad.yaml", config)
+    document["effects"] = {"thing": {"source": "nowhere:f", "parameters": {}}}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(document))
+    with pytest.raises(CoefficientFileError, match="effects.thing"):
+        load_coefficients(tmp_path / "bad.yaml", config)
+
+
+def test_trainer_fits_an_effect_parameter_with_the_coefficients():
+    """Data from the model with a 2000 N axial load; training starts at 1500 N."""
+    config = load_config(overrides=LOADED)
+    truth = config.model(effects=config.effects.with_values({"axial_load": {"force": 2000.0}}))
+    h = config.sample_period
+    step = jax.jit(lambda s: rk4_step(truth, s, h / 10))
+    rng = np.random.default_rng(1)
+    records = []
+    for b in range(2):
+        xi, states = jnp.array([2e-6 * b, -1e-6, 0.0, 0.0, 0.0, 0.0, 0.0]), []
+        for _ in range(400):
+            for _ in range(10):
+                xi = step(xi)
+            states.append(np.asarray(xi[:3]))
+        records.append(np.array(states) + config.noise_rms * rng.standard_normal((400, 3)))
+    start = Trainable(config.model().coeffs, config.effects)
+    result = fit(config, TrainingData((), tuple(records)), 1e-3, start, max_steps=15)
+    force = result.effects.values()["axial_load"]["force"]
+    assert abs(force - 2000.0) < 0.03 * 2000.0, force
+    assert result.final_loss < result.initial_loss

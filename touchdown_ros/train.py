@@ -86,7 +86,7 @@ def make_objective(config: Config, regularisation: float) -> Callable:
 
     def objective(trainable: Trainable, scales: Effects, batch: Batch) -> jax.Array:
         effects = _apply_scale(trainable.effects, scales)
-        return loss(trainable.coeffs, model, config.noise, config.sample_period, batch, regularisation, effects)
+        return loss(trainable.coeffs, model, config.training_noise(), config.sample_period, batch, regularisation, effects)
 
     return jax.jit(jax.value_and_grad(objective))
 

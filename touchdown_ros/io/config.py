@@ -94,6 +94,7 @@ class Config:
     drop: DropDetection
     regularisation: float  # lambda
     topics: Topics
+    training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
     simulator: Mapping[str, Any] = field(default_factory=dict)
     source: str = "<built-in>"
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
@@ -110,6 +111,10 @@ class Config:
             coeffs or Coefficients.zeros(self.kernel),
             self.effects if effects is None else effects,
         )
+
+    def training_noise(self) -> FilterNoise:
+        """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
+        return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
 
     def fingerprint(self) -> str:
         """SHA-256 of what a coefficient file depends on: rig, nominal values and kernel."""
@@ -299,6 +304,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
             levitated_window=read.number("drop_detection.levitated_window", 0.005, positive=True),
         ),
         regularisation=read.number("training.regularisation", 1e-3, non_negative=True),
+        training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
         topics=Topics(**{name: read.text(f"topics.{name}", default) for name, default in Topics().__dict__.items()}),
         simulator={k.removeprefix("simulator."): v for k, v in flat.items() if k.startswith("simulator.")},
         source=source,
