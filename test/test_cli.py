@@ -30,7 +30,7 @@ def estimate_dir(drop_bags, tmp_path_factory):
 
 
 def test_help_of_every_subcommand():
-    for command in ("simulate", "estimate", "train", "evaluate", "demo"):
+    for command in ("simulate", "estimate", "train", "evaluate", "demo", "replay"):
         result = subprocess.run(
             [sys.executable, "-m", "touchdown_ros.cli", command, "--help"], capture_output=True, text=True, check=True
         )

@@ -232,10 +232,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per leave-one-out fold")
     p.add_argument("--quick", action="store_true", help="only simulate and estimate experiment 11 (constant model)")
     p.set_defaults(run=cmd_demo)
+
+    # `touchdown replay` needs rclpy; it has its own parser (touchdown_ros.ros.replay), reached in main.
+    sub.add_parser("replay", add_help=False, help="publish a bag's displacements over ROS 2 (live node tests, demos)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["replay"]:
+        from touchdown_ros.ros.replay import replay_main
+
+        return replay_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
