@@ -464,3 +464,17 @@ def test_overwrite_refuses_what_is_not_a_bag(tmp_path):
         write_bag(precious, [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)], overwrite=True)
     assert (precious / "thesis.tex").read_text() == "years of work"
     assert [p.name for p in tmp_path.iterdir()] == ["results"]
+
+
+def test_conditions_travel_in_metadata_custom_data(tmp_path):
+    from touchdown_ros.io.bags import read_conditions
+
+    stamps = np.arange(3, dtype=np.int64) * 100_000
+    series = [TopicSeries("/amb/displacement", "PointStamped", stamps, np.zeros((3, 3)))]
+    bag = write_bag(tmp_path / "b", series, custom_data={"condition.axial_load": "true", "operator": "ann"})
+    assert read_conditions(bag) == {"axial_load": "true"}
+    assert read_displacement(bag).xyz.shape == (3, 3)  # still an ordinary bag
+    with pytest.raises(ValueError, match="bare .mcap"):
+        write_bag(tmp_path / "b.mcap", series, custom_data={"condition.axial_load": "true"})
+    assert not (tmp_path / "b.mcap").exists()
+    assert read_conditions(write_bag(tmp_path / "c.mcap", series)) == {}

@@ -102,23 +102,36 @@ def test_coefficient_file_keeps_effects_and_refuses_bad_ones(tmp_path):
         load_coefficients(tmp_path / "bad.yaml", config)
 
 
-def test_trainer_fits_an_effect_parameter_with_the_coefficients():
-    """Data from the model with a 2000 N axial load; training starts at 1500 N."""
-    config = load_config(overrides=LOADED)
-    truth = config.model(effects=config.effects.with_values({"axial_load": {"force": 2000.0}}))
+def test_trainer_fits_an_effect_parameter_only_where_the_bag_condition_switches_it_on():
+    """Two records from the model with a 2000 N axial load, one without (its bag's condition
+    axial_load is false); training starts at 1500 N and must find 2000 N from the loaded ones."""
+    config = load_config(overrides={**LOADED, "effects.when.axial_load": "axial_load"})
     h = config.sample_period
-    step = jax.jit(lambda s: rk4_step(truth, s, h / 10))
     rng = np.random.default_rng(1)
-    records = []
-    for b in range(2):
+    records, conditions = [], []
+    for b, loaded in enumerate((True, True, False)):
+        force = 2000.0 if loaded else 0.0
+        truth = config.model(effects=config.effects.with_values({"axial_load": {"force": force}}))
+        step = jax.jit(lambda s, truth=truth: rk4_step(truth, s, h / 10))
         xi, states = jnp.array([2e-6 * b, -1e-6, 0.0, 0.0, 0.0, 0.0, 0.0]), []
         for _ in range(400):
             for _ in range(10):
                 xi = step(xi)
             states.append(np.asarray(xi[:3]))
         records.append(np.array(states) + config.noise_rms * rng.standard_normal((400, 3)))
+        conditions.append({"axial_load": str(loaded).lower(), "brake": "true"})
     start = Trainable(config.model().coeffs, config.effects)
-    result = fit(config, TrainingData((), tuple(records)), 1e-3, start, max_steps=15)
+    result = fit(config, TrainingData((), tuple(records), tuple(conditions)), 1e-3, start, max_steps=15)
     force = result.effects.values()["axial_load"]["force"]
     assert abs(force - 2000.0) < 0.03 * 2000.0, force
     assert result.final_loss < result.initial_loss
+
+
+def test_gates_follow_the_recorded_conditions():
+    effects = fx.build(["axial_load", "brake_decay"])
+    when = {"axial_load": "axial_load"}
+    assert fx.gates_for(effects, when, {"axial_load": "true"}) == (1.0, 1.0)
+    assert fx.gates_for(effects, when, {"axial_load": "false"}) == (0.0, 1.0)
+    assert fx.gates_for(effects, when, {}) == (0.0, 1.0)  # not recorded: the conditional effect is off
+    with pytest.raises(ConfigError, match="not in effects.active"):
+        load_config(overrides={"effects.when.axial_load": "axial_load"})

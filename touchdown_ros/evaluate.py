@@ -90,9 +90,7 @@ def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) 
     results = []
     for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
         constant = estimate_bag(config, path, estimator)
-        pkbkr = estimate_bag(
-            config, path, lambda *a, **k: estimator(*a, **k, coeffs=trained.coeffs, effects=trained.effects)
-        )
+        pkbkr = estimate_bag(config, path, estimator, trained.coeffs, trained.effects)
         results.append(
             BagComparison(Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)})
         )

@@ -11,7 +11,7 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.estimate import Estimate, Estimator, detect_drop, make_estimator, to_grid
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
-from touchdown_ros.io.bags import TopicSeries, read_displacement, read_truth, write_bag
+from touchdown_ros.io.bags import CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
 from touchdown_ros.io.config import Config
 
 
@@ -44,9 +44,25 @@ def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: E
     return make_estimator(config.model(coeffs, effects), config.noise, config.sample_period)
 
 
-def estimate_bag(config: Config, path: str | Path, estimator: Estimator) -> BagEstimate:
-    """Read a bag's displacements, find the drop and estimate everything after it."""
+def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:
+    """`effects` switched on or off for one bag by its recorded conditions (effects.when.*)."""
+    return effects.with_gates(config.effect_gates(effects, read_conditions(path))) if effects else effects
+
+
+def estimate_bag(
+    config: Config,
+    path: str | Path,
+    estimator: Estimator,
+    coeffs: Coefficients | None = None,
+    effects: Effects | None = None,
+) -> BagEstimate:
+    """Read a bag's displacements, find the drop and estimate everything after it, with the
+    estimator's model or other coefficients / effects; effects gated by the bag's conditions."""
     path = Path(path)
+    effects = estimator.model.effects if effects is None else effects
+    gated = bag_effects(config, path, effects)
+    if coeffs is None and all(g == 1.0 for g in gated.gates) and effects is estimator.model.effects:
+        gated = None  # the compiled model as it is
     series = read_displacement(path, config.topics.displacement)
     grid = to_grid(series.stamps_ns, series.xyz, config.sample_period)
     onset = detect_drop(
@@ -56,7 +72,7 @@ def estimate_bag(config: Config, path: str | Path, estimator: Estimator) -> BagE
         raise NoDropError(
             f"{path}: no touchdown found (z never falls {config.drop.threshold * 1e6:.0f} um below its levitated mean)"
         )
-    estimate = estimator(grid.stamps_ns, grid.etas, onset, grid.missing)
+    estimate = estimator(grid.stamps_ns, grid.etas, onset, grid.missing, coeffs=coeffs, effects=gated)
     truth = _aligned_truth(path, config, estimate.stamps_ns)
     return BagEstimate(path, estimate, truth, summarise(estimate, truth, config))
 
@@ -136,8 +152,17 @@ def write_estimate_bag(result: BagEstimate, config: Config, out: Path, overwrite
     return out
 
 
+def conditions_of(condition) -> dict[str, str]:
+    """A Table 1 row as the bag's `condition.*` custom data (what an experimenter logs)."""
+    return {
+        f"{CONDITION_PREFIX}{name}": (str(value).lower() if isinstance(value, bool) else str(value))
+        for name, value in vars(condition).items()
+    }
+
+
 def write_drop_bag(record, config: Config, out: Path, overwrite: bool = False) -> Path:
-    """A simulated drop as a bag: `/amb/displacement` plus the `/truth/...` topics."""
+    """A simulated drop as a bag: `/amb/displacement` plus the `/truth/...` topics, and the
+    experiment's conditions (brake, axial load, ball) in metadata.yaml (not for a bare .mcap)."""
     topics, frame, stamps = config.topics, config.topics.frame_id, record.stamps_ns
     write_bag(
         out,
@@ -148,5 +173,6 @@ def write_drop_bag(record, config: Config, out: Path, overwrite: bool = False) -
             TopicSeries(topics.truth_contact_force, "WrenchStamped", stamps, record.contact_force, frame_id=frame),
         ],
         overwrite=overwrite,
+        custom_data=None if Path(out).suffix == ".mcap" else conditions_of(record.condition),
     )
     return out

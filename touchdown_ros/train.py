@@ -16,7 +16,7 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.estimate import detect_drop, to_grid
 from touchdown_ros.core.training import Batch, loss, make_batch
 from touchdown_ros.core.types import Coefficients
-from touchdown_ros.io.bags import read_displacement
+from touchdown_ros.io.bags import read_conditions, read_displacement
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
 from touchdown_ros.offline import NoDropError
@@ -28,6 +28,7 @@ class TrainingData:
 
     paths: tuple[Path, ...]
     records: tuple[np.ndarray, ...]  # each (N_b, 3) m, NaN rows for missing samples
+    conditions: tuple[dict[str, str], ...] = ()  # each bag's recorded test conditions (condition.*)
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,9 @@ class TrainingResult:
 
 def load_training_data(config: Config, paths: Sequence[str | Path], duration: float | None = None) -> TrainingData:
     """Read and validate every bag (all of them before any work), keep the samples after the drop."""
-    records = []
+    records, conditions = [], []
     for path in paths:
+        conditions.append(read_conditions(path))
         series = read_displacement(path, config.topics.displacement)
         grid = to_grid(series.stamps_ns, series.xyz, config.sample_period)
         onset = detect_drop(
@@ -56,7 +58,7 @@ def load_training_data(config: Config, paths: Sequence[str | Path], duration: fl
         if duration is not None:
             record = record[: int(round(duration / config.sample_period))]
         records.append(record)
-    return TrainingData(tuple(Path(p) for p in paths), tuple(records))
+    return TrainingData(tuple(Path(p) for p in paths), tuple(records), tuple(conditions))
 
 
 class Trainable(NamedTuple):
@@ -111,9 +113,20 @@ def fit(
     if initial is None or isinstance(initial, Coefficients):
         initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
     scales = _scales(initial.effects)
-    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length)
+    conditions = data.conditions or ({},) * len(data.records)
+    gates = [config.effect_gates(initial.effects, c) for c in conditions]
+    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, gates)
+    for index, name in enumerate(initial.effects.names):
+        if not any(g[index] for g in gates):
+            print(
+                f"note: effect {name} acts in none of the bags (effects.when.{name}: "
+                f"{config.effect_when.get(name)!r}); its parameters stay at their starting values",
+                file=stream,
+            )
     objective = objective or make_objective(config, regularisation)
     theta0, unravel = ravel_pytree(Trainable(initial.coeffs, _apply_scale(initial.effects, scales, inverse=True)))
+    # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
+    # so their gradient is zero and they never move)
     theta0 = np.asarray(theta0, dtype=float)
 
     def physical(theta: np.ndarray) -> Trainable:

@@ -62,23 +62,30 @@ def effect(name: str, parameters: Mapping[str, tuple[float, str, str]], descript
 
 @jax.tree_util.register_pytree_node_class
 class Effects:
-    """Active effects: static (names, functions), traced parameters (tuple of dicts)."""
+    """Active effects: static (names, functions); traced parameters (tuple of dicts) and gates
+    (one factor per effect: 1 acts, 0 switched off, e.g. in a bag recorded without the loader)."""
 
-    def __init__(self, effects: tuple[Effect, ...] = (), params: tuple[Mapping[str, Array], ...] | None = None):
+    def __init__(
+        self,
+        effects: tuple[Effect, ...] = (),
+        params: tuple[Mapping[str, Array], ...] | None = None,
+        gates: tuple | None = None,
+    ):
         self.effects = tuple(effects)
         if params is None:
             params = tuple(e.defaults() for e in self.effects)
         self.params = tuple(dict(p) for p in params)
+        self.gates = tuple(gates) if gates is not None else (1.0,) * len(self.effects)
 
     # pytree protocol: the functions are aux data (hashable by identity), the values children
     def tree_flatten(self):
-        return (self.params,), self.effects
+        return (self.params, self.gates), self.effects
 
     @classmethod
     def tree_unflatten(cls, aux, children):
         obj = object.__new__(cls)
         obj.effects = aux
-        obj.params = tuple(children[0])
+        obj.params, obj.gates = tuple(children[0]), tuple(children[1])
         return obj
 
     def __len__(self) -> int:
@@ -100,14 +107,31 @@ class Effects:
 
     def with_values(self, values: Mapping[str, Mapping[str, float]]) -> "Effects":
         params = tuple({k: values.get(e.name, {}).get(k, p[k]) for k in p} for e, p in zip(self.effects, self.params))
-        return Effects(self.effects, params)
+        return Effects(self.effects, params, self.gates)
+
+    def with_params(self, params: tuple[Mapping[str, Array], ...]) -> "Effects":
+        return Effects(self.effects, params, self.gates)
+
+    def with_gates(self, gates) -> "Effects":
+        """The same effects switched on (1) or off (0) each; gates may be a traced (n,) array."""
+        return Effects(self.effects, self.params, tuple(gates[i] for i in range(len(self.effects))))
 
     def force(self, xi: Array, rig) -> Array:
-        """Sum of the active effects' forces (3,), N."""
+        """Sum of the active effects' forces (3,), N, each times its gate."""
         total = jnp.zeros(3, dtype=xi.dtype)
-        for e, p in zip(self.effects, self.params):
-            total = total + jnp.asarray(e.force(xi, p, rig), dtype=xi.dtype)
+        for e, p, gate in zip(self.effects, self.params, self.gates):
+            total = total + gate * jnp.asarray(e.force(xi, p, rig), dtype=xi.dtype)
         return total
+
+
+def gates_for(effects: Effects, when: Mapping[str, str], conditions: Mapping[str, str]) -> tuple[float, ...]:
+    """1.0 for an effect that acts in a bag with these conditions, else 0.0.
+
+    when: effect name -> the condition that switches it on (effects.when.<name> in the rig
+    YAML); an effect without one always acts. A condition counts as on when its value is
+    "true", "yes", "on" or "1"."""
+    on = {name for name, value in conditions.items() if str(value).strip().lower() in ("true", "yes", "on", "1")}
+    return tuple(1.0 if name not in when or when[name] in on else 0.0 for name in effects.names)
 
 
 # ---------------------------------------------------------------- library

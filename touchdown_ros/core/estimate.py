@@ -200,4 +200,5 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
             missing=missing,
         )
 
+    estimate.model = model  # what it was compiled for (estimate_bag gates its effects per bag)
     return estimate

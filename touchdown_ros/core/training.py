@@ -30,10 +30,17 @@ class Batch(NamedTuple):
     initial_mean: Array  # (B, 7)
     initial_cov: Array  # (B, 7, 7)
     valid: Array  # (B, L) bool, sample present and counted in the loss
+    gates: Array  # (B, E) which of the model's E effects act in each record (1 on, 0 off)
 
 
-def make_batch(records: list[np.ndarray], initial_cov: np.ndarray, length: int | None = None) -> Batch:
-    """Stack records (each (N_b, 3), from its drop onset) into a padded batch."""
+def make_batch(
+    records: list[np.ndarray],
+    initial_cov: np.ndarray,
+    length: int | None = None,
+    gates: list[tuple[float, ...]] | None = None,
+) -> Batch:
+    """Stack records (each (N_b, 3), from its drop onset) into a padded batch; gates per record
+    (default: no effects)."""
     length = length or max(len(r) for r in records)
     etas = np.full((len(records), length, 3), np.nan)
     means, covs = [], []
@@ -44,16 +51,20 @@ def make_batch(records: list[np.ndarray], initial_cov: np.ndarray, length: int |
         means.append(np.asarray(belief.mean))
         covs.append(np.asarray(belief.cov))
     valid = np.all(np.isfinite(etas), axis=-1)
-    return Batch(jnp.asarray(etas), jnp.asarray(np.array(means)), jnp.asarray(np.array(covs)), jnp.asarray(valid))
+    gates = np.asarray(gates if gates is not None else [()] * len(records), dtype=float).reshape(len(records), -1)
+    return Batch(
+        jnp.asarray(etas), jnp.asarray(np.array(means)), jnp.asarray(np.array(covs)), jnp.asarray(valid), jnp.asarray(gates)
+    )
 
 
 def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
     """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample)."""
 
-    def one(etas: Array, mean: Array, cov: Array) -> Array:
-        return ekf(model, noise, h, Belief(mean, cov), etas).innovation
+    def one(etas: Array, mean: Array, cov: Array, gates: Array) -> Array:
+        gated = model._replace(effects=model.effects.with_gates(gates))
+        return ekf(gated, noise, h, Belief(mean, cov), etas).innovation
 
-    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov)
+    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates)
 
 
 def output_error(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:

@@ -18,9 +18,10 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
+import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -403,7 +404,9 @@ def check_series(series: TopicSeries) -> None:
         raise ValueError(f"{where}: stamps must lie in [0, 2^31 s) ns (log times are unsigned, seconds int32)")
 
 
-def _write_messages(target: Path, series: Sequence[TopicSeries], encoded: Sequence[np.ndarray]) -> None:
+def _write_messages(
+    target: Path, series: Sequence[TopicSeries], encoded: Sequence[np.ndarray], custom_data: Mapping[str, str]
+) -> None:
     """A rosbag2 MCAP directory at target (which must not exist), messages of all topics in stamp order."""
     stamps = [np.asarray(s.stamps_ns, dtype=np.int64) for s in series]
     all_stamps = np.concatenate(stamps) if stamps else np.zeros(0, dtype=np.int64)
@@ -413,14 +416,24 @@ def _write_messages(target: Path, series: Sequence[TopicSeries], encoded: Sequen
     blobs = [memoryview(rows.tobytes()) for rows in encoded]
     sizes = [rows.shape[1] for rows in encoded]
     with Writer(target, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for key, value in custom_data.items():
+            writer.set_custom_data(key, value)
         connections = [writer.add_connection(s.topic, _full_type(s.msgtype), typestore=TYPESTORE) for s in series]
         for stamp, t, row in zip(all_stamps[order].tolist(), topic_of[order].tolist(), row_of[order].tolist()):
             size = sizes[t]
             writer.write(connections[t], stamp, blobs[t][row * size : (row + 1) * size])
 
 
-def write_bag(path: str | Path, series: Sequence[TopicSeries], overwrite: bool = False) -> Path:
+def write_bag(
+    path: str | Path,
+    series: Sequence[TopicSeries],
+    overwrite: bool = False,
+    custom_data: Mapping[str, str] | None = None,
+) -> Path:
     """Write topics to a rosbag2 directory in MCAP storage (a bare MCAP file if path ends in .mcap).
+
+    custom_data: string pairs for metadata.yaml's `custom_data` (e.g. the test conditions,
+    `condition.<name>`); a bare .mcap file has no metadata.yaml, so they are refused there.
 
     Messages of all topics are interleaved in stamp order (ties: the order of `series`).
     Atomic: written into a temporary sibling directory, flushed to disk and renamed into place,
@@ -432,13 +445,18 @@ def write_bag(path: str | Path, series: Sequence[TopicSeries], overwrite: bool =
     if len(set(topics)) != len(topics):
         raise ValueError(f"{path}: a topic is given twice: {topics}")
     encoded = [encode_series(s) for s in series]
+    custom_data = dict(custom_data or {})
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in custom_data.items()):
+        raise ValueError(f"{path}: custom_data keys and values must be strings")
     _check_target(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     bare = path.suffix == ".mcap"
+    if bare and custom_data:
+        raise ValueError(f"{path}: a bare .mcap file has no metadata.yaml for custom_data; write a bag directory")
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
         bag = staging / (path.stem if bare else path.name)
-        _write_messages(bag, series, encoded)
+        _write_messages(bag, series, encoded, custom_data)
         built = bag / f"{bag.name}.mcap" if bare else bag
         _fsync_tree(built)
         _install(built, path, overwrite)
@@ -446,6 +464,23 @@ def write_bag(path: str | Path, series: Sequence[TopicSeries], overwrite: bool =
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return path
+
+
+CONDITION_PREFIX = "condition."
+
+
+def read_conditions(path: str | Path) -> dict[str, str]:
+    """The test conditions a bag was recorded under: metadata.yaml `custom_data` entries
+    `condition.<name>: <value>` (e.g. condition.axial_load: "true"); {} for a bare .mcap file."""
+    path = _existing(path)
+    if not path.is_dir():
+        return {}
+    try:
+        metadata = yaml.safe_load((path / "metadata.yaml").read_text())
+        custom = metadata["rosbag2_bagfile_information"].get("custom_data") or {}
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as error:
+        raise BagError(f"{path}: metadata.yaml is unreadable: {error}") from None
+    return {str(k).removeprefix(CONDITION_PREFIX): str(v) for k, v in custom.items() if str(k).startswith(CONDITION_PREFIX)}
 
 
 def _is_bag(path: Path) -> bool:

@@ -100,6 +100,11 @@ class Config:
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
     node: NodeSettings = field(default_factory=NodeSettings)  # the live node's node.* parameters
     effects: Effects = field(default_factory=Effects)  # add-on force terms switched on in effects.*
+    effect_when: Mapping[str, str] = field(default_factory=dict)  # effect -> bag condition that switches it on
+
+    def effect_gates(self, effects: Effects, conditions: Mapping[str, str]) -> tuple[float, ...]:
+        """Which of `effects` act in a bag recorded under `conditions` (effects.when.*)."""
+        return effects_library.gates_for(effects, self.effect_when, conditions)
 
     def model(self, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Model:
         """The estimator's model: all alpha = 0 (constant baseline) unless coeffs are given,
@@ -311,6 +316,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         parameters=dict(flat),
         node=_node_settings(read),
         effects=_effects(read, flat),
+        effect_when=_effect_when(read, flat),
     )
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
@@ -325,6 +331,9 @@ def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
     if not isinstance(active, list) or not all(isinstance(n, str) and n for n in active) or len(set(active)) < len(active):
         raise ConfigError(f"{read.source}: parameter 'effects.active' must be a list of distinct effect names")
     user = {k.removeprefix("effects.user."): read.text(k, "") for k in flat if k.startswith("effects.user.")}
+    reserved = sorted(set(active) & {"active", "user", "when"})
+    if reserved:
+        raise ConfigError(f"{read.source}: effects.active: {', '.join(reserved)} is a reserved key, not an effect name")
     try:
         chosen = [effects_library.resolve(user.get(name, name), name=name) for name in active]
     except (ValueError, ImportError, AttributeError) as error:
@@ -335,13 +344,25 @@ def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
             parameter: read.number(f"effects.{effect.name}.{parameter}", default)
             for parameter, default in effect.defaults().items()
         }
-    stray = sorted(k for k in flat if k.startswith("effects.") and k not in read.used and not k.startswith("effects.user."))
+    stray = sorted(
+        k for k in flat if k.startswith("effects.") and k not in read.used and not k.startswith(("effects.user.", "effects.when."))
+    )
     if stray:
         raise ConfigError(
             f"{read.source}: parameter(s) {', '.join(stray)} belong to no active effect "
             f"(active: {', '.join(active) or 'none'})"
         )
     return Effects(tuple(chosen), tuple(values[e.name] for e in chosen))
+
+
+def _effect_when(read: _Reader, flat: Mapping[str, Any]) -> dict[str, str]:
+    """effects.when.<effect>: <condition>: the effect acts only in bags whose condition.<condition> is true."""
+    active = flat.get("effects.active", [])
+    when = {k.removeprefix("effects.when."): read.text(k, "") for k in flat if k.startswith("effects.when.")}
+    unknown = sorted(set(when) - set(active))
+    if unknown:
+        raise ConfigError(f"{read.source}: effects.when.{unknown[0]}: '{unknown[0]}' is not in effects.active")
+    return when
 
 
 def _node_settings(read: _Reader) -> NodeSettings:
