@@ -109,3 +109,13 @@ def test_quick_demo_writes_bag_estimate_and_figures(tmp_path):
     assert (tmp_path / "bags" / "exp_11" / "metadata.yaml").is_file()
     assert (tmp_path / "estimate" / "exp_11_estimate" / "metadata.yaml").is_file()
     assert (tmp_path / "estimate" / "figures" / "exp_11" / "contact_force.png").is_file()
+
+
+def test_param_overrides_reach_the_rig_and_bad_ones_are_named(tmp_path, capsys):
+    from touchdown_ros.cli import main
+
+    assert main(["simulate", "--experiment", "1", "-o", str(tmp_path), "-p", "rig.mass"]) == 3
+    assert "expected NAME:=VALUE" in capsys.readouterr().err
+    assert main(["simulate", "--experiment", "1", "-o", str(tmp_path), "-p", "rig.mass:=-5.0"]) == 3
+    assert "'rig.mass' must be > 0" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

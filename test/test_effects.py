@@ -89,6 +89,7 @@ def test_coefficient_file_keeps_effects_and_refuses_bad_ones(tmp_path):
     path = save_coefficients(tmp_path / "c.yaml", coeffs, config, TrainingRecord(), effects)
     loaded = load_coefficients(path, load_config())  # effects come from the file, not the rig
     assert loaded.effects.values() == {"axial_load": {"force": 1987.5}}
+    assert loaded.effects.effects[0].when == ""
     assert loaded.model(load_config()).effects.names == ("axial_load",)
 
     document = yaml.safe_load(path.read_text())
@@ -128,10 +129,10 @@ def test_trainer_fits_an_effect_parameter_only_where_the_bag_condition_switches_
 
 
 def test_gates_follow_the_recorded_conditions():
-    effects = fx.build(["axial_load", "brake_decay"])
-    when = {"axial_load": "axial_load"}
-    assert fx.gates_for(effects, when, {"axial_load": "true"}) == (1.0, 1.0)
-    assert fx.gates_for(effects, when, {"axial_load": "false"}) == (0.0, 1.0)
-    assert fx.gates_for(effects, when, {}) == (0.0, 1.0)  # not recorded: the conditional effect is off
+    config = load_config(overrides={"effects.active": ["axial_load", "brake_decay"], "effects.when.axial_load": "axial_load"})
+    effects = config.effects
+    assert fx.gates_for(effects, {"axial_load": "true"}) == (1.0, 1.0)
+    assert fx.gates_for(effects, {"axial_load": "false"}) == (0.0, 1.0)
+    assert fx.gates_for(effects, {}) == (0.0, 1.0)  # not recorded: the conditional effect is off
     with pytest.raises(ConfigError, match="not in effects.active"):
         load_config(overrides={"effects.when.axial_load": "axial_load"})

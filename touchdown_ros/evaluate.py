@@ -9,6 +9,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.metrics import peak_errors_per_impact, relative_peak_error, rmse
 from touchdown_ros.io.config import Config
 from touchdown_ros.offline import BagEstimate, estimate_bag, estimator_for
@@ -85,8 +86,9 @@ class _Quiet:
 
 
 def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) -> list[BagComparison]:
-    """Estimate each bag with the constant model (the rig's effects) and with its trained model."""
-    estimator = estimator_for(config)
+    """Estimate each bag with the paper's constant model (ref. [13], no add-on effects) and with
+    its trained model (PKBKR coefficients and the effects they were fitted with)."""
+    estimator = estimator_for(config, effects=Effects())
     results = []
     for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
         constant = estimate_bag(config, path, estimator)

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import Estimate, Estimator, detect_drop, make_estimator, to_grid
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
@@ -46,7 +46,7 @@ def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: E
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:
     """`effects` switched on or off for one bag by its recorded conditions (effects.when.*)."""
-    return effects.with_gates(config.effect_gates(effects, read_conditions(path))) if effects else effects
+    return effects.with_gates(gates_for(effects, read_conditions(path))) if effects else effects
 
 
 def estimate_bag(

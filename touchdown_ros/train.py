@@ -12,7 +12,7 @@ import numpy as np
 import scipy.optimize
 from jax.flatten_util import ravel_pytree
 
-from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import detect_drop, to_grid
 from touchdown_ros.core.training import Batch, loss, make_batch
 from touchdown_ros.core.types import Coefficients
@@ -114,13 +114,13 @@ def fit(
         initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
     scales = _scales(initial.effects)
     conditions = data.conditions or ({},) * len(data.records)
-    gates = [config.effect_gates(initial.effects, c) for c in conditions]
+    gates = [gates_for(initial.effects, c) for c in conditions]
     batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, gates)
     for index, name in enumerate(initial.effects.names):
         if not any(g[index] for g in gates):
             print(
-                f"note: effect {name} acts in none of the bags (effects.when.{name}: "
-                f"{config.effect_when.get(name)!r}); its parameters stay at their starting values",
+                f"note: effect {name} acts in none of the bags (it needs condition "
+                f"{initial.effects.effects[index].when!r}); its parameters stay at their starting values",
                 file=stream,
             )
     objective = objective or make_objective(config, regularisation)

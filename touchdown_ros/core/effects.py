@@ -46,6 +46,7 @@ class Effect:
     parameters: Mapping[str, tuple[float, str, str]]
     description: str = ""
     source: str = ""  # how to find it again: a library name, "module:function" or an entry point name
+    when: str = ""  # the bag condition that switches it on (condition.<when> true); "" acts always
 
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
@@ -124,14 +125,11 @@ class Effects:
         return total
 
 
-def gates_for(effects: Effects, when: Mapping[str, str], conditions: Mapping[str, str]) -> tuple[float, ...]:
-    """1.0 for an effect that acts in a bag with these conditions, else 0.0.
-
-    when: effect name -> the condition that switches it on (effects.when.<name> in the rig
-    YAML); an effect without one always acts. A condition counts as on when its value is
-    "true", "yes", "on" or "1"."""
+def gates_for(effects: Effects, conditions: Mapping[str, str]) -> tuple[float, ...]:
+    """1.0 for an effect that acts in a bag with these conditions, else 0.0: an effect with a
+    `when` acts where that condition is "true", "yes", "on" or "1"; one without always acts."""
     on = {name for name, value in conditions.items() if str(value).strip().lower() in ("true", "yes", "on", "1")}
-    return tuple(1.0 if name not in when or when[name] in on else 0.0 for name in effects.names)
+    return tuple(1.0 if not e.when or e.when in on else 0.0 for e in effects.effects)
 
 
 # ---------------------------------------------------------------- library
@@ -232,11 +230,12 @@ LIBRARY: dict[str, Effect] = {
 }
 
 
-def resolve(spec: str, name: str | None = None) -> Effect:
+def resolve(spec: str, name: str | None = None, when: str = "") -> Effect:
     """A library effect by name, a user effect by dotted path "module:attr", or an entry point
-    of group `touchdown_ros.effects`; `name` renames it (the key of its parameters)."""
+    of group `touchdown_ros.effects`; `name` renames it (the key of its parameters), `when`
+    makes it act only in bags recorded with that condition on."""
     found = _lookup(spec)
-    return dataclasses.replace(found, name=name or found.name, source=spec)
+    return dataclasses.replace(found, name=name or found.name, source=spec, when=when)
 
 
 def _lookup(spec: str) -> Effect:

@@ -82,7 +82,7 @@ def save_coefficients(
             **{name: alpha_Z[i].tolist() for i, name in enumerate(AXIAL_PARAMETERS)},
         },
         "effects": {
-            effect.name: {"source": effect.source or effect.name, "parameters": values}
+            effect.name: {"source": effect.source or effect.name, "when": effect.when, "parameters": values}
             for effect, values in zip(effects.effects, effects.values().values())
         },
         "training": {
@@ -166,7 +166,7 @@ def _load_effects(path: Path, table: Any) -> Effects:
         if not isinstance(entry, dict) or not isinstance(entry.get("parameters"), dict):
             raise CoefficientFileError(f"{path}: effects.{name} needs 'source' and 'parameters'")
         try:
-            effect = resolve_effect(str(entry.get("source", name)), name=name)
+            effect = resolve_effect(str(entry.get("source", name)), name=name, when=str(entry.get("when") or ""))
         except ValueError as error:
             raise CoefficientFileError(f"{path}: effects.{name}: {error}") from None
         given = entry["parameters"]

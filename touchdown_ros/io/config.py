@@ -100,11 +100,6 @@ class Config:
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
     node: NodeSettings = field(default_factory=NodeSettings)  # the live node's node.* parameters
     effects: Effects = field(default_factory=Effects)  # add-on force terms switched on in effects.*
-    effect_when: Mapping[str, str] = field(default_factory=dict)  # effect -> bag condition that switches it on
-
-    def effect_gates(self, effects: Effects, conditions: Mapping[str, str]) -> tuple[float, ...]:
-        """Which of `effects` act in a bag recorded under `conditions` (effects.when.*)."""
-        return effects_library.gates_for(effects, self.effect_when, conditions)
 
     def model(self, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Model:
         """The estimator's model: all alpha = 0 (constant baseline) unless coeffs are given,
@@ -316,7 +311,6 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         parameters=dict(flat),
         node=_node_settings(read),
         effects=_effects(read, flat),
-        effect_when=_effect_when(read, flat),
     )
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
@@ -334,8 +328,9 @@ def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
     reserved = sorted(set(active) & {"active", "user", "when"})
     if reserved:
         raise ConfigError(f"{read.source}: effects.active: {', '.join(reserved)} is a reserved key, not an effect name")
+    when = _effect_when(read, flat)
     try:
-        chosen = [effects_library.resolve(user.get(name, name), name=name) for name in active]
+        chosen = [effects_library.resolve(user.get(name, name), name=name, when=when.get(name, "")) for name in active]
     except (ValueError, ImportError, AttributeError) as error:
         raise ConfigError(f"{read.source}: effects.active: {error}") from None
     values = {}
