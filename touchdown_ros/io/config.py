@@ -78,6 +78,7 @@ class NodeSettings:
     resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
     relevitation_band: float = 20.0e-6  # m around the levitated mean that counts as levitated
     relevitation_window: float = 0.005  # s in the band that ends a touchdown
+    conditions: tuple[str, ...] = ()  # test conditions on during this run (switch effects with a `when`)
 
 
 @dataclass(frozen=True)
@@ -386,4 +387,12 @@ def _node_settings(read: _Reader) -> NodeSettings:
         resync_after=read.integer("node.resync_after", d.resync_after),
         relevitation_band=read.number("node.relevitation_band", d.relevitation_band, positive=True),
         relevitation_window=read.number("node.relevitation_window", d.relevitation_window, positive=True),
+        conditions=_names(read, "node.conditions"),
     )
+
+
+def _names(read: _Reader, key: str) -> tuple[str, ...]:
+    value = read._get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError(f"{read.source}: parameter '{key}' must be a list of names")
+    return tuple(value)

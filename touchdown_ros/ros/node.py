@@ -38,6 +38,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
+from touchdown_ros.core.effects import gates_for
 from touchdown_ros.core.streaming import StreamEvent, StreamingEstimator, StreamOutput, StreamSettings
 from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
@@ -147,9 +148,12 @@ class EstimatorNode(Node):
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True, **kwargs)
         self.config = self._configure(base_config, coefficients)
         node = self.config.node
-        self.model_info, coeffs = self._load_model(node.coefficients)
+        self.model_info, model = self._load_model(node.coefficients)
         settings = StreamSettings.from_config(self.config)
-        self.estimator = StreamingEstimator(self.config.model(coeffs), self.config.noise, settings)
+        # the node has no bag metadata: node.conditions says which conditional effects act now
+        gates = gates_for(model.effects, {name: "true" for name in node.conditions})
+        model = model._replace(effects=model.effects.with_gates(gates))
+        self.estimator = StreamingEstimator(model, self.config.noise, settings)
         started = time.monotonic()
         self.estimator.warm_up()
         self.get_logger().info(
@@ -223,25 +227,25 @@ class EstimatorNode(Node):
         return config_from_parameters(flat, source=f"{source} + ROS parameters of {self.get_fully_qualified_name()}")
 
     def _load_model(self, path: str):
-        """(ModelInfo, coefficients or None); a bad coefficient file falls back to the constant model."""
+        """(ModelInfo, Model); a bad coefficient file falls back to the constant model (the rig's effects)."""
         identity = {"rig_fingerprint": self.config.fingerprint()[:16]}
         if not path:
             return ModelInfo(OK, "constant model (node.coefficients is empty)",
-                             {"model": "constant", "coefficients": "", **identity}), None
+                             {"model": "constant", "coefficients": "", **identity}), self.config.model()
         try:
             loaded = load_coefficients(path, self.config)
         except (CoefficientFileError, OSError, ValueError) as error:  # missing, unreadable, another rig
             self.get_logger().error(f"{error}; running the constant model instead")
             return ModelInfo(ERROR, f"coefficient file refused, running the constant model: {error}",
                              {"model": "constant (fallback)", "coefficients": path, "error": str(error),
-                              **identity}), None
+                              **identity}), self.config.model()
         info = ModelInfo(
             OK,
             f"PKBKR coefficients from {path}",
             {"model": "pkbkr", "coefficients": path, "coefficients_sha256": sha256_of(path)[:16],
              "trained_on_bags": len(loaded.training.bags), **identity},
         )
-        return info, loaded.coeffs
+        return info, loaded.model(self.config)
 
     # ------------------------------------------------------------------ input
     @quiet_at_shutdown
