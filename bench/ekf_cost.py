@@ -1,13 +1,21 @@
-"""EKF cost per sample: JAX per call, JAX inside lax.scan, and filterpy (numpy, FD Jacobian).
+"""EKF cost per sample: JAX per call, JAX inside lax.scan, the live node's chunk, and filterpy.
 
-All three filter the same 1500-sample touchdown record with the same PKBKR model
+All filter the same 1500-sample touchdown record with the same PKBKR model
 (reference rig, random but fixed alpha). Medians of repeated runs, side by side in
-one process. Run: `make bench` or `.venv/bin/python bench/ekf_cost.py`.
+one process. The JAX rows are measured twice: with XLA's default CPU runtime and, in
+a second process, with the small-loop option the node sets
+(`core.streaming.with_small_loop_flag`: the whole scan compiled into one function).
+`lax.scan(..., unroll=k)` rows show what unrolling the loop gives.
+Run: `make bench` or `.venv/bin/python bench/ekf_cost.py`.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
+import subprocess
+import sys
 import statistics
 import time
 
@@ -18,6 +26,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.ekf import Belief, ekf, ekf_step
+from touchdown_ros.core.streaming import make_chunk_filter, with_small_loop_flag
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 
@@ -99,26 +108,37 @@ def median_time(fn, repeats):
     return statistics.median(times)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--samples", type=int, default=1500)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--baseline-samples", type=int, default=300, help="filterpy is slow: time it on fewer samples")
-    args = parser.parse_args()
-
-    config = load_config()
-    rng = np.random.default_rng(1)
-    zeros = Coefficients.zeros(config.kernel)
-    coeffs = Coefficients(0.1 * rng.standard_normal(zeros.alpha_R.shape), 0.1 * rng.standard_normal(zeros.alpha_Z.shape))
-    model, noise, h = config.model(coeffs), config.noise, config.sample_period
-    etas = make_data(model, h, args.samples)
-    initial = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(4)])), jnp.diag(noise.initial))
-
+def jax_rows(model, noise, h, etas, initial, repeats, unrolls) -> dict[str, float]:
+    """Seconds per sample of the JAX variants (in this process's XLA configuration)."""
+    n = len(etas)
+    rows = {}
     # The model is closed over, as the node and `touchdown estimate` do: its constants fold at compile time.
     scan = jax.jit(lambda e: ekf(model, noise, h, initial, e))
     etas_device = jnp.asarray(etas)
     jax.block_until_ready(scan(etas_device))
-    t_scan = median_time(lambda: jax.block_until_ready(scan(etas_device)), args.repeats)
+    rows["JAX EKF inside lax.scan (`core.ekf.ekf`)"] = median_time(
+        lambda: jax.block_until_ready(scan(etas_device)), repeats) / n
+
+    for unroll in unrolls:
+        def unrolled(e, unroll=unroll):
+            body = lambda prior, eta: ekf_step(model, noise, h, prior, eta)  # noqa: E731
+            return jax.lax.scan(body, initial, e, unroll=unroll)[1]
+
+        fn = jax.jit(unrolled)
+        jax.block_until_ready(fn(etas_device))
+        rows[f"JAX EKF inside lax.scan, unroll={unroll}"] = median_time(
+            lambda: jax.block_until_ready(fn(etas_device)), repeats) / n
+
+    # The live node's chunk: EKF + filtered signals + NIS packed per row, padded chunk of fixed length.
+    chunk = make_chunk_filter(model, noise, h)
+    for size in (512, 16):
+        block = np.asarray(etas[:size])
+        count = np.asarray(size, np.int64)
+        jax.block_until_ready(chunk(initial, block, count))
+        calls = max(1, n // size)
+        seconds = median_time(lambda: [np.asarray(chunk(initial, block, count)[1]) for _ in range(calls)], repeats)
+        rows[f"node chunk of {size} (`make_chunk_filter`, EKF + signals, per call incl. dispatch)"] = \
+            seconds / (calls * size)
 
     step = jax.jit(lambda belief, eta: ekf_step(model, noise, h, belief, eta)[0])
     samples = list(etas)
@@ -130,7 +150,41 @@ def main() -> None:
         jax.block_until_ready(belief)
 
     per_call()
-    t_call = median_time(per_call, args.repeats)
+    rows["JAX EKF, jitted step per call"] = median_time(per_call, repeats) / n
+    return rows
+
+
+def setup(samples: int):
+    config = load_config()
+    rng = np.random.default_rng(1)
+    zeros = Coefficients.zeros(config.kernel)
+    coeffs = Coefficients(0.1 * rng.standard_normal(zeros.alpha_R.shape),
+                          0.1 * rng.standard_normal(zeros.alpha_Z.shape))
+    model, noise, h = config.model(coeffs), config.noise, config.sample_period
+    etas = make_data(model, h, samples)
+    initial = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(4)])), jnp.diag(noise.initial))
+    return model, noise, h, etas, initial
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--samples", type=int, default=1500)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--baseline-samples", type=int, default=300, help="filterpy is slow: time it on fewer samples")
+    parser.add_argument("--unroll", type=int, nargs="*", default=[2, 4, 8], help="lax.scan unroll factors to time")
+    parser.add_argument("--jax-only", action="store_true", help="print the JAX rows as JSON (for the second process)")
+    args = parser.parse_args()
+
+    model, noise, h, etas, initial = setup(args.samples)
+    if args.jax_only:
+        print(json.dumps(jax_rows(model, noise, h, etas, initial, args.repeats, args.unroll)))
+        return
+    child = [sys.executable, __file__, "--jax-only", "--samples", str(args.samples), "--repeats", str(args.repeats),
+             "--unroll", *map(str, args.unroll)]
+    env_default = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env_small = dict(env_default, XLA_FLAGS=with_small_loop_flag(""))
+    default = json.loads(subprocess.run(child, env=env_default, check=True, capture_output=True, text=True).stdout)
+    small = json.loads(subprocess.run(child, env=env_small, check=True, capture_output=True, text=True).stdout)
 
     phi = numpy_model(model)
     f = lambda xi: numpy_rk4(phi, xi, h)  # noqa: E731
@@ -150,19 +204,16 @@ def main() -> None:
             kf.F = fd_jacobian(f, kf.x[:, 0], steps)
             kf.predict()
 
-    t_base = median_time(baseline, max(3, args.repeats // 2))
-
-    rows = [
-        ("JAX EKF inside lax.scan", t_scan / args.samples),
-        ("JAX EKF, jitted step per call", t_call / args.samples),
-        ("filterpy EKF, numpy model, FD Jacobian", t_base / args.baseline_samples),
-    ]
-    base = rows[-1][1]
-    print(f"EKF cost per sample ({args.samples} samples, median of {args.repeats}; jax {jax.__version__}):")
-    print("| implementation | us per sample | speed-up vs filterpy |")
-    print("|---|---:|---:|")
-    for name, seconds in rows:
-        print(f"| {name} | {seconds * 1e6:.1f} | {base / seconds:.0f}x |")
+    base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples
+    print(f"EKF cost per sample ({args.samples} samples, median of {args.repeats}; jax {jax.__version__}; "
+          f"load average {os.getloadavg()[0]:.1f}):")
+    print("| implementation | us per sample, XLA default | us per sample, small-loop option | "
+          "speed-up vs filterpy (best) |")
+    print("|---|---:|---:|---:|")
+    for name, seconds in default.items():
+        best = min(seconds, small[name])
+        print(f"| {name} | {seconds * 1e6:.1f} | {small[name] * 1e6:.1f} | {base / best:.0f}x |")
+    print(f"| filterpy EKF, numpy model, FD Jacobian | {base * 1e6:.1f} | - | 1x |")
 
 
 if __name__ == "__main__":

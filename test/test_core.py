@@ -8,7 +8,7 @@ import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, step_with_jacobian, transition_jacobian
-from touchdown_ros.core.ekf import Belief, ekf, rts_smoother
+from touchdown_ros.core.ekf import Belief, ekf, predict, predict_with_rate, rts_smoother
 from touchdown_ros.core.estimate import detect_drop, to_grid, GridError
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
@@ -156,6 +156,21 @@ def test_eq16_chain_rule_equals_jacfwd_of_f(case):
     value, Phi = step_with_jacobian(model, xi, 1e-4)
     np.testing.assert_array_equal(np.asarray(value), np.asarray(rk4_step(model, xi, 1e-4)))
     np.testing.assert_allclose(np.asarray(Phi), np.asarray(transition_jacobian(model, xi, 1e-4)), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_predict_with_rate_is_predict_plus_phi_and_its_jacobian(case):
+    model = make_model(random_coeffs(7))
+    belief = Belief(jnp.array(CASES[case]), jnp.diag(jnp.array([1e-10, 2e-10, 3e-10, 1.0, 1e-4, 2e-4, 3e-4])))
+    Q = jnp.diag(jnp.array([1e-14, 1e-14, 1e-14, 1e-8, 1e-8, 1e-8, 1e-8]))
+    expected, expected_Phi = predict(model, belief, Q, 1e-4)
+    got, Phi, rate, rate_jacobian = predict_with_rate(model, belief, Q, 1e-4)
+    np.testing.assert_array_equal(np.asarray(got.mean), np.asarray(expected.mean))
+    np.testing.assert_allclose(np.asarray(got.cov), np.asarray(expected.cov), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(np.asarray(Phi), np.asarray(expected_Phi), rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(rate), np.asarray(phi(model, belief.mean)))
+    J = jax.jacfwd(lambda s: phi(model, s))(belief.mean)
+    np.testing.assert_allclose(np.asarray(rate_jacobian), np.asarray(J), rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(J))))
 
 
 def test_rk4_converges_with_fourth_order():

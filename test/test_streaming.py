@@ -22,6 +22,7 @@ from touchdown_ros.core.streaming import (
     StreamSettings,
     estimate_stream,
     make_chunk_filter,
+    with_small_loop_flag,
 )
 from touchdown_ros.io.config import load_config
 
@@ -260,3 +261,12 @@ def test_phases_and_initial_position_wait_for_enough_samples(chunk_filter, recor
     np.testing.assert_allclose(estimator.levitated_reference[2], np.mean(measured[:50, 2]), rtol=0, atol=1e-18)
     update = estimator.push(stamps[60:250], measured[60:250])
     assert estimator.phase == TOUCHDOWN and len(update.estimates.stamps_ns) > 0
+
+
+def test_small_loop_flag_is_added_once_and_merged_into_existing_backend_options():
+    flag = with_small_loop_flag("")
+    assert flag.startswith("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=")
+    assert with_small_loop_flag(flag) == flag
+    merged = with_small_loop_flag("--xla_dump_to=/tmp/x --xla_backend_extra_options=a=1")
+    assert merged.split() == ["--xla_dump_to=/tmp/x",
+                              "--xla_backend_extra_options=a=1," + flag.split("=", 1)[1]]

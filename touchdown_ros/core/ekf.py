@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from touchdown_ros.core.dynamics import step_with_jacobian
+from touchdown_ros.core.dynamics import phi_and_jacobian, step_with_jacobian
 from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
 
 
@@ -63,6 +63,30 @@ def predict(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, A
     """Time update (eq. 17a, d): xi_{k+1,-} = f(xi_k), P_{k+1,-} = Phi P Phi^T + Q."""
     mean, Phi = step_with_jacobian(model, belief.mean, h)
     return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi
+
+
+def predict_with_rate(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array, Array, Array]:
+    """`predict`, plus phi and d phi / d xi at the filtered mean: (next prior, Phi, phi(xi), dphi/dxi).
+
+    The chain rule through the RK4 stages of `dynamics.step_with_jacobian`, written out
+    here because its first stage is what the filtered signals need (acceleration
+    phi(xi)[4:] and its Jacobian for the covariance): the live estimator takes them
+    from here instead of evaluating phi and its Jacobian at xi a second time. Equal to
+    `predict` to round-off (the same operations).
+    """
+    xi = belief.mean
+    I = jnp.eye(xi.shape[0], dtype=xi.dtype)
+    p1, A1 = phi_and_jacobian(model, xi)
+    k1, dk1 = h * p1, h * A1
+    p2, A2 = phi_and_jacobian(model, xi + 0.5 * k1)
+    k2, dk2 = h * p2, h * A2 @ (I + 0.5 * dk1)
+    p3, A3 = phi_and_jacobian(model, xi + 0.5 * k2)
+    k3, dk3 = h * p3, h * A3 @ (I + 0.5 * dk2)
+    p4, A4 = phi_and_jacobian(model, xi + k3)
+    k4, dk4 = h * p4, h * A4 @ (I + dk3)
+    mean = xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+    Phi = I + (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4) / 6.0
+    return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi, p1, A1
 
 
 def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
