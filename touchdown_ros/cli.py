@@ -163,6 +163,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    from touchdown_ros.diagnose import Settings, run
+
+    config = _config(args)
+    settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0)
+    if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100:
+        raise ValueError("--k must be >= 1, --force-walk > 0 and --threshold in (0, 100)")
+    run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
+    print((args.out / "diagnosis.md").read_text(), end="")
+    print(f"diagnosis.md/.json, errors.csv, ranking.csv and figures in {args.out}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Simulate the 21-experiment campaign, train PKBKR, evaluate it leave-one-out, estimate exp 11."""
     out: Path = args.out
@@ -253,6 +266,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per held-out fold (warm-started)")
     p.add_argument("--example", default="exp_11", help="bag shown in the time-series figures (default exp_11)")
     p.set_defaults(run=cmd_evaluate)
+
+    p = sub.add_parser(
+        "diagnose", help="where the model fails, the force it lacks and which candidate effect explains it"
+    )
+    _add_config(p)
+    p.add_argument("bags", type=Path, nargs="+", metavar="BAG", help="rosbag2 directory or .mcap file")
+    p.add_argument("--coeffs", type=Path, help="coefficient file to diagnose (default: the rig's constant model)")
+    p.add_argument("--compare", type=Path, help="a second coefficient file (after), shown side by side with --coeffs")
+    p.add_argument("--out", "-o", type=Path, required=True, help="output directory for tables and figures")
+    p.add_argument("--k", type=int, default=20, help="samples ahead of the k-step prediction (default 20 = 2 ms)")
+    p.add_argument(
+        "--force-walk", type=float, default=30.0, help="random walk of the missing-force states, N per sample (default 30)"
+    )
+    p.add_argument(
+        "--threshold", type=float, default=50.0, help="ERR %% below which the missing force is 'unexplained' (default 50)"
+    )
+    p.set_defaults(run=cmd_diagnose)
 
     p = sub.add_parser(
         "demo", help="simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 10 min)"
