@@ -1,0 +1,183 @@
+"""`touchdown diagnose` end to end on bags with a hidden effect (issue #5).
+
+(a) Table 1's additional axial load, in the truth but not in the paper's model: the tool
+    must rank axial_load first with its force within 10 % of the truth; training with it
+    must fit the force within 10 % and halve the k-step and the contact-force error.
+(b) A once-per-revolution axial thrust that no library candidate models: the tool must
+    call the missing force unexplained, and a user-written effect registered by dotted
+    path in a rig YAML must make the error fall.
+
+Bags are simulated here (short drops to stay fast), written and read back as rosbag2 MCAP.
+"""
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+
+from touchdown_ros.cli import main
+from touchdown_ros.core import diagnostics as dg
+from touchdown_ros.io.coefficients import load_coefficients
+from touchdown_ros.io.config import load_config
+from touchdown_ros.offline import write_drop_bag
+from touchdown_ros.sim.campaign import CAMPAIGN
+from touchdown_ros.sim.params import simulator_parameters, truth_constants
+from touchdown_ros.sim.simulator import simulate_drop
+
+DURATION = 0.06  # s simulated after the drop
+STEPS = "10"  # training L-BFGS steps
+
+
+def thrust(xi, p, rig):
+    """User effect: a once-per-revolution axial force a cos(theta) + b sin(theta), N."""
+    zero = 0.0 * xi[2]
+    return jnp.stack([zero, zero, p["a"] * jnp.cos(xi[3]) + p["b"] * jnp.sin(xi[3])])
+
+
+thrust.parameters = {"a": (100.0, "N", "cos(theta) amplitude"), "b": (100.0, "N", "sin(theta) amplitude")}
+
+
+def _simulate(out, numbers, **simulator):
+    """Bags exp_NN of Table 1 rows `numbers` (seed = number) and each one's truth constants."""
+    overrides = {"simulator.drop_duration": DURATION, **{f"simulator.{k}": v for k, v in simulator.items()}}
+    config = load_config(overrides=overrides)
+    params = simulator_parameters(config)
+    truths = {}
+    for number in numbers:
+        condition = CAMPAIGN[number - 1]
+        record = simulate_drop(config, condition, seed=number, params=params)
+        write_drop_bag(record, config, out / f"exp_{number:02d}")
+        # the simulator draws the experiment's constants first from this generator
+        rng = np.random.default_rng(np.random.SeedSequence([number, number]))
+        truths[f"exp_{number:02d}"] = truth_constants(
+            config, params, condition.ball, condition.brake, condition.axial_load, record.drop_time, rng
+        )
+    return [out / f"exp_{n:02d}" for n in numbers], truths
+
+
+def _diagnosis(out):
+    return json.loads((out / "diagnosis.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def load_bags(tmp_path_factory):
+    """Experiments 9 and 11: brake + the additional axial load (about 2000 N)."""
+    return _simulate(tmp_path_factory.mktemp("load"), (9, 11))
+
+
+@pytest.fixture(scope="module")
+def thrust_bags(tmp_path_factory):
+    """Experiments 1 and 2 (no brake, no load) with a hidden 1500 N once-per-revolution thrust."""
+    return _simulate(tmp_path_factory.mktemp("thrust"), (1, 2), axial_thrust=1500.0)
+
+
+def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, tmp_path):
+    bags, truths = load_bags
+    loads = {name: t.axial_load for name, t in truths.items()}
+    mean_load = float(np.mean(list(loads.values())))
+    assert all(1500.0 < f < 2500.0 for f in loads.values())
+
+    coeffs = tmp_path / "with_load.yaml"
+    code = main(
+        ["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--steps", STEPS,
+         "--duration", "0.05"]
+    )
+    assert code == 0
+    fitted = load_coefficients(coeffs, load_config()).effects.values()["axial_load"]["force"]
+    assert abs(fitted - mean_load) < 0.1 * mean_load, fitted
+
+    out = tmp_path / "diagnosis"
+    assert main(["diagnose", *map(str, bags), "--compare", str(coeffs), "--out", str(out)]) == 0
+    document = _diagnosis(out)
+    before, after = document["models"]
+    assert (before["label"], after["label"]) == ("before", "after")
+
+    # before (the paper's constant model): the load is what is missing, and how large it is
+    verdict = before["verdict"]
+    assert verdict["explained"], verdict["text"]
+    assert verdict["candidates"][0]["candidate"] == "axial_load", [c["candidate"] for c in verdict["candidates"]]
+    force = verdict["candidates"][0]["parameters"]["force"]
+    for name, value in force["per_bag"].items():
+        assert abs(value - loads[name]) < 0.1 * loads[name], (name, value, loads[name])
+    assert abs(force["value"] - mean_load) < 0.1 * mean_load
+
+    # after: the errors on the axis the load acts on fall at least by half; x, y do not get worse
+    ratio = document["comparison"]
+    assert ratio["k_step_rmse_per_axis"][2] <= 0.5, ratio
+    assert ratio["contact_force_rmse_per_axis"][2] <= 0.5, ratio
+    assert max(ratio["k_step_rmse_per_axis"][:2]) < 1.1 and max(ratio["contact_force_rmse_per_axis"][:2]) < 1.1, ratio
+    assert ratio["k_step_rmse_norm"] < 1.0 and ratio["contact_force_rmse_norm"] < 1.0, ratio
+    assert ratio["missing_force_rms"][2] < 0.5, ratio
+    for name in ("diagnosis.md", "errors.csv", "ranking.csv", "figures/missing_force.png", "figures/ranking.png"):
+        assert (out / name).stat().st_size > 200, name
+    assert "after / before" in (out / "diagnosis.md").read_text()
+
+
+def test_thrust_is_unexplained_and_a_user_effect_makes_the_error_fall(thrust_bags, tmp_path):
+    bags, truths = thrust_bags
+    assert all(t.axial_thrust == 1500.0 and t.axial_load == 0.0 for t in truths.values())
+
+    rig = yaml.safe_load(open(load_config().source))
+    # starting values of the magnitude the diagnosis shows (missing F_z ~1000 N rms)
+    rig["/**"]["ros__parameters"]["effects"] = {
+        "active": ["thrust"],
+        "user": {"thrust": f"{__name__}:thrust"},
+        "thrust": {"a": 1000.0, "b": 1000.0},
+    }
+    rig_file = tmp_path / "rig_with_thrust.yaml"
+    rig_file.write_text(yaml.safe_dump(rig))
+    coeffs = tmp_path / "with_thrust.yaml"
+    code = main(
+        ["train", *map(str, bags), "--config", str(rig_file), "-o", str(coeffs), "--steps", "15", "--duration", "0.05"]
+    )
+    assert code == 0
+    fitted = load_coefficients(coeffs, load_config()).effects.values()["thrust"]
+    amplitude = float(np.hypot(fitted["a"], fitted["b"]))
+
+    out = tmp_path / "diagnosis"
+    assert main(["diagnose", *map(str, bags), "--compare", str(coeffs), "--out", str(out)]) == 0
+    document = _diagnosis(out)
+    before = document["models"][0]
+    assert not before["verdict"]["explained"], before["verdict"]["text"]
+    assert "unexplained" in before["verdict"]["text"]
+    z = before["signature"]["axes"]["z"]
+    assert z["rms_N"] > 500.0 and z["mean_by_phase_N"]["free flight"] > 200.0, z  # lifts the rotor: not a load
+
+    # the user effect makes the error fall (measured: z k-step 0.92, one-step 0.86, contact force 0.65)
+    ratio = document["comparison"]
+    assert ratio["k_step_rmse_per_axis"][2] < 0.97, (ratio, amplitude)
+    assert ratio["k_step_rmse_norm"] < 0.97, (ratio, amplitude)
+    assert ratio["contact_force_rmse_per_axis"][2] < 0.8, (ratio, amplitude)
+
+
+def test_residual_tests_see_white_and_coloured_sequences():
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal(4000)
+    coloured = np.convolve(white, np.ones(10) / 10, mode="same")
+    assert dg.whiteness(white, 50)["outside_share"] < 0.05
+    assert dg.whiteness(coloured, 50)["outside_share"] > 0.1
+    lags, r, band = dg.cross_correlation(np.roll(white, 3), white, 10)
+    assert lags[np.argmax(r)] == 3 and r.max() > 0.9 and band < 0.05
+
+
+def test_frols_finds_the_true_block_and_its_value_despite_forced_terms():
+    rng = np.random.default_rng(1)
+    n = 3000
+    forced = rng.standard_normal((n, 4))
+    blocks = {"a": rng.standard_normal((n, 1)), "b": rng.standard_normal((n, 2)), "c": rng.standard_normal((n, 1))}
+    y = forced @ np.array([1.0, -2.0, 0.5, 3.0]) + 2.5 * blocks["b"][:, 1] + 0.1 * rng.standard_normal(n)
+    ranking = dg.frols(y, blocks, forced)
+    best = ranking.candidates[0]
+    assert best.name == "b" and best.err > 0.99
+    np.testing.assert_allclose(best.values, [0.0, 2.5], atol=0.02)
+    assert ranking.forced_err > 0.5 and ranking.order[0][0] == "b"
+    assert dg.fit_percent(y[:, None], y[:, None])[0] == 100.0
+
+
+def test_phases_and_impact_numbers():
+    radial = np.array([0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1], bool)
+    axial = np.array([0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], bool)
+    np.testing.assert_array_equal(dg.contact_phase(radial, axial)[:5], [0, 1, 3, 2, 0])
+    numbers = dg.impact_numbers(radial | axial, merge_gap=5)
+    assert numbers[0] == 0 and numbers[2] == 1 and numbers[-1] == 2
