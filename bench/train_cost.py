@@ -58,7 +58,7 @@ def run_baseline(bags: list[Path], target: float, budget: float) -> dict:
     config = load_config()
     data = load_training_data(config, bags)
     batch = make_batch(list(data.records), np.asarray(config.noise.initial))
-    model, noise, h, lam = config.model(), config.noise, config.sample_period, config.regularisation
+    model, noise, h, lam = config.model(), config.training_noise(), config.sample_period, config.regularisation
     count = float(np.sum(batch.valid))
     K_R, K_Z = gram(config.kernel)
     L_R, L_Z = np.linalg.cholesky(np.asarray(K_R) + 1e-10 * np.eye(len(K_R))), np.linalg.cholesky(
