@@ -2,9 +2,9 @@
 
 All filter the same 1500-sample touchdown record with the same PKBKR model
 (reference rig, random but fixed alpha). Medians of repeated runs, side by side in
-one process. The JAX rows are measured twice: with XLA's default CPU runtime and, in
-a second process, with the small-loop option the node sets
-(`core.streaming.with_small_loop_flag`: the whole scan compiled into one function).
+one process. The JAX rows are measured twice, each in a child process: with XLA's
+default CPU runtime and with the small-loop option that importing `touchdown_ros.core`
+sets (`core.xla`: the whole scan compiled into one function).
 `lax.scan(..., unroll=k)` rows show what unrolling the loop gives.
 Run: `make bench` or `.venv/bin/python bench/ekf_cost.py`.
 """
@@ -26,7 +26,8 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.ekf import Belief, ekf, ekf_step
-from touchdown_ros.core.streaming import make_chunk_filter, with_small_loop_flag
+from touchdown_ros.core.streaming import make_chunk_filter
+from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 
@@ -181,8 +182,10 @@ def main() -> None:
         return
     child = [sys.executable, __file__, "--jax-only", "--samples", str(args.samples), "--repeats", str(args.repeats),
              "--unroll", *map(str, args.unroll)]
-    env_default = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env_small = dict(env_default, XLA_FLAGS=with_small_loop_flag(""))
+    # importing touchdown_ros.core raises the option unless XLA_FLAGS already names it
+    xla_default = f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024"
+    env_default = dict(os.environ, XLA_FLAGS=xla_default)
+    env_small = dict(os.environ, XLA_FLAGS=with_small_loop_flag(""))
     default = json.loads(subprocess.run(child, env=env_default, check=True, capture_output=True, text=True).stdout)
     small = json.loads(subprocess.run(child, env=env_small, check=True, capture_output=True, text=True).stdout)
 

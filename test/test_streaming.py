@@ -22,8 +22,8 @@ from touchdown_ros.core.streaming import (
     StreamSettings,
     estimate_stream,
     make_chunk_filter,
-    with_small_loop_flag,
 )
+from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
 from touchdown_ros.io.config import load_config
 
 CONFIG = load_config()
@@ -270,3 +270,19 @@ def test_small_loop_flag_is_added_once_and_merged_into_existing_backend_options(
     merged = with_small_loop_flag("--xla_dump_to=/tmp/x --xla_backend_extra_options=a=1")
     assert merged.split() == ["--xla_dump_to=/tmp/x",
                               "--xla_backend_extra_options=a=1," + flag.split("=", 1)[1]]
+
+
+def test_importing_the_core_sets_the_xla_options_and_keeps_a_users_own():
+    import os
+    import subprocess
+    import sys
+
+    from touchdown_ros.core.xla import HOST_DEVICES_OPTION, usable_cores, with_host_devices
+
+    show = "import os, touchdown_ros.core; print(os.environ['XLA_FLAGS'])"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    raised = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
+    assert raised.stdout.strip() == with_host_devices(with_small_loop_flag(""), usable_cores())
+    own = f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024 {HOST_DEVICES_OPTION}=1"
+    kept = subprocess.run([sys.executable, "-c", show], env=dict(env, XLA_FLAGS=own), capture_output=True, text=True, check=True)
+    assert kept.stdout.strip() == own

@@ -60,3 +60,33 @@ def test_fit_recovers_the_loss_of_the_true_model():
     assert result.initial_loss > 1.05 * true_loss  # the constant model is measurably wrong here
     assert result.final_loss < true_loss + 0.05 * (result.initial_loss - true_loss)
     assert result.history == tuple(sorted(result.history, reverse=True))
+
+
+def test_records_spread_over_devices_give_the_same_loss_and_gradient():
+    """The trainer's sharded loss (one share of the records per XLA host device, batch padded
+    with uncounted copies) equals the plain one."""
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from touchdown_ros.core.training import RECORDS, pad_records
+
+    records = records_of(true_coeffs(), count=3, samples=200)
+    batch = make_batch(records, np.asarray(CONFIG.noise.initial))
+    mesh = Mesh(np.array(jax.devices()), (RECORDS,))
+    padded = pad_records(batch, 2 * mesh.size)  # 3 records -> 4 or more: uncounted copies included
+    assert padded.etas.shape[0] > 3 and padded.etas.shape[0] % mesh.size == 0
+    assert int(np.sum(padded.valid)) == int(np.sum(batch.valid))
+    padded = jax.device_put(padded, NamedSharding(mesh, P(RECORDS)))
+    model, coeffs = CONFIG.model(), true_coeffs()
+
+    def plain(c):
+        return loss(c, model, CONFIG.noise, H, batch, 1e-3)
+
+    def sharded(c):
+        return loss(c, model, CONFIG.noise, H, padded, 1e-3, mesh=mesh)
+
+    value, grad = jax.jit(jax.value_and_grad(plain))(coeffs)
+    value_s, grad_s = jax.jit(jax.value_and_grad(sharded))(coeffs)
+    np.testing.assert_allclose(float(value_s), float(value), rtol=1e-12)
+    for a, b in zip(jax.tree.leaves(grad_s), jax.tree.leaves(grad)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12 * float(np.max(np.abs(b))))

@@ -11,10 +11,12 @@ import jax
 import numpy as np
 import scipy.optimize
 from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import detect_drop, to_grid
-from touchdown_ros.core.training import Batch, loss, make_batch
+from touchdown_ros.core.training import RECORDS, Batch, loss, make_batch, pad_records
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import read_conditions, read_displacement
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
@@ -81,14 +83,30 @@ def _apply_scale(scaled: Effects, scales: Effects, inverse: bool = False) -> Eff
     )
 
 
+def record_mesh() -> Mesh | None:
+    """The host's XLA devices (one per usable core, `core.xla`) as one mesh axis over the
+    records of a batch; None with a single device."""
+    devices = jax.devices()
+    return Mesh(np.array(devices), (RECORDS,)) if len(devices) > 1 else None
+
+
+def place(batch: Batch, mesh: Mesh | None) -> Batch:
+    """The batch padded to a multiple of the mesh size and split over its devices."""
+    if mesh is None:
+        return batch
+    return jax.device_put(pad_records(batch, mesh.size), NamedSharding(mesh, P(RECORDS)))
+
+
 def make_objective(config: Config, regularisation: float) -> Callable:
-    """Jitted (loss, gradient) of eq. 18 in (coefficients, scaled effect parameters); the batch
-    is an argument, so batches of one shape (e.g. cross-validation folds) share one compilation."""
-    model = config.model()
+    """Jitted (loss, gradient) of eq. 18 in (coefficients, scaled effect parameters), the records
+    spread over `record_mesh()`; the batch is an argument (`place`d on that mesh), so batches of
+    one shape (e.g. cross-validation folds) share one compilation."""
+    model, mesh = config.model(), record_mesh()
 
     def objective(trainable: Trainable, scales: Effects, batch: Batch) -> jax.Array:
         effects = _apply_scale(trainable.effects, scales)
-        return loss(trainable.coeffs, model, config.training_noise(), config.sample_period, batch, regularisation, effects)
+        noise = config.training_noise()
+        return loss(trainable.coeffs, model, noise, config.sample_period, batch, regularisation, effects, mesh)
 
     return jax.jit(jax.value_and_grad(objective))
 
@@ -115,7 +133,8 @@ def fit(
     scales = _scales(initial.effects)
     conditions = data.conditions or ({},) * len(data.records)
     gates = [gates_for(initial.effects, c) for c in conditions]
-    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, gates)
+    mesh = record_mesh()
+    batch = place(make_batch(list(data.records), np.asarray(config.noise.initial), length, gates), mesh)
     for index, name in enumerate(initial.effects.names):
         if not any(g[index] for g in gates):
             print(
@@ -134,13 +153,19 @@ def fit(
         return Trainable(scaled.coeffs, _apply_scale(scaled.effects, scales))
 
     history: list[float] = []
+    last: dict[bytes, tuple[float, np.ndarray]] = {}  # L-BFGS asks again for the point we start from
 
     def fun(theta: np.ndarray):
+        key = theta.tobytes()
+        if key in last:
+            return last[key]
         value, grad = objective(unravel(theta), scales, batch)
         value = float(value)
         if not np.isfinite(value):
             raise FloatingPointError("training loss is not finite; check the bags and the noise settings")
-        return value, np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
+        last.clear()
+        last[key] = value, np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
+        return last[key]
 
     def callback(intermediate_result):
         history.append(float(intermediate_result.fun))

@@ -13,9 +13,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from touchdown_ros.core.dynamics import phi_and_jacobian, step_with_jacobian
-from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
-
+from touchdown_ros.core.dynamics import step_with_jacobian, step_with_jacobian_and_rate
+from touchdown_ros.core.types import OUTPUT_SIZE, FilterNoise, Model
 
 
 class Belief(NamedTuple):
@@ -68,25 +67,12 @@ def predict(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, A
 def predict_with_rate(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array, Array, Array]:
     """`predict`, plus phi and d phi / d xi at the filtered mean: (next prior, Phi, phi(xi), dphi/dxi).
 
-    The chain rule through the RK4 stages of `dynamics.step_with_jacobian`, written out
-    here because its first stage is what the filtered signals need (acceleration
-    phi(xi)[4:] and its Jacobian for the covariance): the live estimator takes them
-    from here instead of evaluating phi and its Jacobian at xi a second time. Equal to
-    `predict` to round-off (the same operations).
+    The first RK4 stage is what the filtered signals need (acceleration phi(xi)[4:] and
+    its Jacobian for the covariance): the live estimator takes them from here instead of
+    evaluating phi and its Jacobian at xi a second time. Equal to `predict` (the same operations).
     """
-    xi = belief.mean
-    I = jnp.eye(xi.shape[0], dtype=xi.dtype)
-    p1, A1 = phi_and_jacobian(model, xi)
-    k1, dk1 = h * p1, h * A1
-    p2, A2 = phi_and_jacobian(model, xi + 0.5 * k1)
-    k2, dk2 = h * p2, h * A2 @ (I + 0.5 * dk1)
-    p3, A3 = phi_and_jacobian(model, xi + 0.5 * k2)
-    k3, dk3 = h * p3, h * A3 @ (I + 0.5 * dk2)
-    p4, A4 = phi_and_jacobian(model, xi + k3)
-    k4, dk4 = h * p4, h * A4 @ (I + dk3)
-    mean = xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
-    Phi = I + (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4) / 6.0
-    return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi, p1, A1
+    mean, Phi, rate, rate_jacobian = step_with_jacobian_and_rate(model, belief.mean, h)
+    return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi, rate, rate_jacobian
 
 
 def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
@@ -96,12 +82,21 @@ def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Arr
     return next_prior, StepOutput(prior, filtered, innovation, S, Phi, used)
 
 
-def ekf(model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array) -> StepOutput:
-    """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N."""
+def ekf(
+    model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array, checkpoint: bool = False
+) -> StepOutput:
+    """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N.
+
+    checkpoint: differentiating through the filter recomputes each step in the backward
+    pass instead of storing its intermediates (`jax.checkpoint`); the same numbers, and
+    here about half the time of the gradient, which is bound by memory traffic.
+    """
 
     def body(prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
         return ekf_step(model, noise, h, prior, eta)
 
+    if checkpoint:
+        body = jax.checkpoint(body)
     _, outputs = jax.lax.scan(body, initial, etas)
     return outputs
 

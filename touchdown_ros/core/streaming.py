@@ -44,27 +44,6 @@ STAMP_REJECTIONS = ("duplicate", "out_of_order", "off_grid")
 VALUE_REJECTIONS = ("non_finite", "saturated", "millimetre")
 
 
-#: XLA CPU option under which a small `while` loop (an EKF chunk) is compiled into one function
-#: instead of being run operation by operation by the runtime (per row ~4x cheaper here). It
-#: is process-wide and read when JAX starts its CPU backend: `with_small_loop_flag` adds it to
-#: an XLA_FLAGS value, and the node does so before it uses JAX.
-SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
-SMALL_LOOP_BYTES = 1 << 30
-
-
-def with_small_loop_flag(xla_flags: str) -> str:
-    """XLA_FLAGS value with the small-loop option added (kept as it is if already set)."""
-    if SMALL_LOOP_OPTION in xla_flags:
-        return xla_flags
-    option = f"{SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
-    flags = xla_flags.split()
-    for i, flag in enumerate(flags):  # one --xla_backend_extra_options holds all (comma-separated)
-        if flag.startswith("--xla_backend_extra_options="):
-            flags[i] = f"{flag},{option}"
-            return " ".join(flags)
-    return " ".join([*flags, f"--xla_backend_extra_options={option}"])
-
-
 @dataclass(frozen=True)
 class StreamSettings:
     """What the streaming estimator needs besides the model; SI units."""
@@ -274,7 +253,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
 
     Everything stays inside the loop body (no LAPACK call: the 3 x 3 inverse is
     closed-form) so that XLA's CPU backend can compile the whole loop into one
-    function when its small-loop option is raised (`with_small_loop_flag`).
+    function (the small-loop option `core.xla` sets).
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
 

@@ -15,12 +15,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
+
+#: Mesh axis over which `output_error` spreads the records of a batch.
+RECORDS = "records"
 
 
 class Batch(NamedTuple):
@@ -62,16 +67,52 @@ def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) 
 
     def one(etas: Array, mean: Array, cov: Array, gates: Array) -> Array:
         gated = model._replace(effects=model.effects.with_gates(gates))
-        return ekf(gated, noise, h, Belief(mean, cov), etas).innovation
+        return ekf(gated, noise, h, Belief(mean, cov), etas, checkpoint=True).innovation
 
     return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates)
 
 
-def output_error(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
-    """Mean squared one-step prediction error over valid samples, in units of the noise variance."""
+def squared_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
+    """Sum over valid samples of the squared one-step prediction errors, in noise variances."""
     errors = prediction_errors(model, noise, h, batch)
-    squared = jnp.where(batch.valid[..., None], errors**2 / noise.measurement, 0.0)
-    return jnp.sum(squared) / jnp.sum(batch.valid)
+    return jnp.sum(jnp.where(batch.valid[..., None], errors**2 / noise.measurement, 0.0))
+
+
+def output_error(model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None) -> Array:
+    """Mean squared one-step prediction error over valid samples, in units of the noise variance.
+
+    With a mesh (one axis, `RECORDS`), each device filters its share of the records in its
+    own loop and the sums are added (the batch size must be a multiple of the mesh size:
+    `pad_records`); the same number as without.
+    """
+    if mesh is None:
+        total = squared_errors(model, noise, h, batch)
+    else:
+
+        def share(coeffs: Coefficients, effects: Effects, records: Batch) -> Array:
+            local = model._replace(coeffs=coeffs, effects=effects)
+            return jax.lax.psum(squared_errors(local, noise, h, records), RECORDS)
+
+        # check_vma off: the identity cotangents of dynamics.phi_and_jacobian are built
+        # inside and carry no varying-axis type; nothing here is replicated across devices.
+        total = jax.shard_map(
+            share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=P(), check_vma=False
+        )(model.coeffs, jax.tree.map(jnp.asarray, model.effects), batch)
+    return total / jnp.sum(batch.valid)
+
+
+def pad_records(batch: Batch, multiple: int) -> Batch:
+    """The batch with copies of its first record appended, counted nowhere (valid False),
+    until its size is a multiple of `multiple`: loss and gradient are unchanged.
+
+    Copies rather than NaN records, so that the unused rows stay finite and cannot turn
+    the gradient into NaN through `where`.
+    """
+    extra = -batch.etas.shape[0] % multiple
+    if extra == 0:
+        return batch
+    padded = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], extra, axis=0)]), batch)
+    return padded._replace(valid=padded.valid.at[-extra:].set(False))
 
 
 def loss(
@@ -82,8 +123,10 @@ def loss(
     batch: Batch,
     lam: float,
     effects: Effects | None = None,
+    mesh: Mesh | None = None,
 ) -> Array:
     """Eq. 18 with the output error normalised as in output_error; `effects` (with their
-    physical parameters, not penalised) replace the model's when given."""
+    physical parameters, not penalised) replace the model's when given; `mesh` spreads the
+    records over devices (`output_error`)."""
     trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
-    return output_error(trained, noise, h, batch) + lam * rkhs_distance(model.kernel, coeffs)
+    return output_error(trained, noise, h, batch, mesh) + lam * rkhs_distance(model.kernel, coeffs)

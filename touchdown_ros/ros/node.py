@@ -44,7 +44,6 @@ from touchdown_ros.core.streaming import (
     StreamingEstimator,
     StreamOutput,
     StreamSettings,
-    with_small_loop_flag,
 )
 from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
@@ -63,15 +62,6 @@ def qos(reliability: str, depth: int) -> QoSProfile:
     """Keep-last QoS of the given reliability (best_effort matches sensor-data publishers)."""
     policy = ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=policy)
-
-
-def configure_xla() -> None:
-    """XLA_FLAGS for the node (before JAX starts its backend): compile each EKF chunk loop into one function.
-
-    Without it XLA's CPU runtime runs the loop body operation by operation and an EKF
-    row costs ~3x more (bench/ekf_cost.py). Has no effect once JAX has started.
-    """
-    os.environ["XLA_FLAGS"] = with_small_loop_flag(os.environ.get("XLA_FLAGS", ""))
 
 
 def enable_compilation_cache() -> None:
@@ -480,7 +470,6 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else [sys.argv[0], *argv])
     args = parse_arguments(rclpy.utilities.remove_ros_args(argv)[1:])
-    configure_xla()
     enable_compilation_cache()
     rclpy.init(args=argv)
     node = None
