@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -22,7 +21,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.ekf import Belief, ekf, ekf_step
@@ -31,61 +29,7 @@ from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 
-
-def numpy_model(model):
-    """The same eq. 5-12 model written with numpy, for the filterpy baseline."""
-    rig, p, kernel, coeffs = model[:4]
-    T_R, T_Z = np.asarray(kernel.T_R), np.asarray(kernel.T_Z)
-    a_R, a_Z = np.asarray(coeffs.alpha_R), np.asarray(coeffs.alpha_Z)
-
-    def q(deformation, velocity, T):
-        s = np.array([deformation / kernel.deformation_scale, velocity / kernel.velocity_scale])
-        return np.exp(-np.sum((s - T) ** 2, axis=1) / (2 * kernel.width**2))
-
-    def phi(xi):
-        x, y, z, theta, xd, yd, zd = xi
-        r = math.hypot(x, y)
-        c, s = (x / r, y / r) if r > 0 else (1.0, 0.0)
-        rdot = c * xd + s * yd
-        F_n = F_t = F_z = 0.0
-        if r > rig.radial_clearance:
-            Q = q(r - rig.radial_clearance, rdot, T_R)
-            k_R, c_R, mu = (max(f0 * (1 + Q @ a), 0.0) for f0, a in zip((p.k_R, p.c_R, p.mu), a_R))
-            F_n = k_R * (r - rig.radial_clearance) + c_R * rdot
-            F_t = mu * F_n
-            F_z = -mu * np.sign(zd) * F_n
-        if z < -rig.axial_clearance:
-            Q = q(z + rig.axial_clearance, zd, T_Z)
-            k_Z, c_Z, k_ZR = (max(f0 * (1 + Q @ a), 0.0) for f0, a in zip((p.k_Z, p.c_Z, p.k_ZR), a_Z))
-            F_zZ = -k_Z * (z + rig.axial_clearance) - c_Z * zd
-            F_t += k_ZR * F_zZ
-            F_z += F_zZ
-        u = rig.eccentricity * rig.speed**2
-        return np.array(
-            [xd, yd, zd, rig.speed,
-             (-F_n * c + F_t * s) / rig.mass + u * math.cos(theta),
-             (-F_n * s - F_t * c) / rig.mass + u * math.sin(theta),
-             F_z / rig.mass - rig.gravity]
-        )
-
-    return phi
-
-
-def numpy_rk4(phi, xi, h):
-    k1 = h * phi(xi)
-    k2 = h * phi(xi + 0.5 * k1)
-    k3 = h * phi(xi + 0.5 * k2)
-    k4 = h * phi(xi + k3)
-    return xi + (k1 + 2 * k2 + 2 * k3 + k4) / 6
-
-
-def fd_jacobian(f, xi, steps):
-    J = np.empty((7, 7))
-    for j in range(7):
-        d = np.zeros(7)
-        d[j] = steps[j]
-        J[:, j] = (f(xi + d) - f(xi - d)) / (2 * steps[j])
-    return J
+from numpy_ekf import filterpy_innovations  # bench/numpy_ekf.py
 
 
 def make_data(model, h, n, seed=0):
@@ -189,23 +133,8 @@ def main() -> None:
     default = json.loads(subprocess.run(child, env=env_default, check=True, capture_output=True, text=True).stdout)
     small = json.loads(subprocess.run(child, env=env_small, check=True, capture_output=True, text=True).stdout)
 
-    phi = numpy_model(model)
-    f = lambda xi: numpy_rk4(phi, xi, h)  # noqa: E731
-    steps = np.array([1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1e-6])
-    Hm = np.eye(3, 7)
-
-    class Baseline(ExtendedKalmanFilter):
-        def predict_x(self, u=0):
-            self.x = f(self.x[:, 0])[:, None]
-
     def baseline():
-        kf = Baseline(dim_x=7, dim_z=3)
-        kf.x = np.asarray(initial.mean)[:, None].copy()
-        kf.P, kf.Q, kf.R = np.diag(noise.initial), np.diag(noise.process), np.diag(noise.measurement)
-        for eta in etas[: args.baseline_samples]:
-            kf.update(eta[:, None], lambda x: Hm, lambda x: Hm @ x)
-            kf.F = fd_jacobian(f, kf.x[:, 0], steps)
-            kf.predict()
+        filterpy_innovations(model, noise, h, etas[: args.baseline_samples], initial.mean, initial.cov)
 
     base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples
     print(f"EKF cost per sample ({args.samples} samples, median of {args.repeats}; jax {jax.__version__}; "
