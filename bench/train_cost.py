@@ -188,7 +188,7 @@ def main() -> None:
         baseline = worker("--worker", "baseline", "--target", str(ours["final_loss"]))
         numpy_eval = worker("--worker", "numpy")
     base_time = baseline["reached_target_seconds"]
-    ratio = f"{base_time / ours['seconds']:.0f}x" if base_time else f"> {baseline['seconds'] / ours['seconds']:.0f}x (not reached)"
+    ratio = f"{base_time / ours['seconds']:.1f}x" if base_time else f"> {baseline['seconds'] / ours['seconds']:.0f}x (not reached)"
     print(f"Training the 21-bag campaign to loss {ours['final_loss']:.5g} (from {ours['initial_loss']:.5g}):")
     print("| method | wall time / s | peak memory / MiB | loss reached |")
     print("|---|---:|---:|---:|")
