@@ -255,12 +255,18 @@ def test_phases_and_initial_position_wait_for_enough_samples(chunk_filter, recor
     estimator = streaming(chunk_filter)
     assert estimator.phase == WAITING
     estimator.push(stamps[:10], measured[:10])
-    assert estimator.phase == WAITING and estimator.levitated_reference is None
+    assert estimator.phase == WAITING and estimator.levitated_reference is None and estimator.drop_level is None
     estimator.push(stamps[10:60], measured[10:60])
     assert estimator.phase == LEVITATED
     np.testing.assert_allclose(estimator.levitated_reference[2], np.mean(measured[:50, 2]), rtol=0, atol=1e-18)
-    update = estimator.push(stamps[60:250], measured[60:250])
-    assert estimator.phase == TOUCHDOWN and len(update.estimates.stamps_ns) > 0
+    # the node runs the estimator as soon as a sample falls below drop_level: that sample must start the touchdown
+    level = estimator.drop_level
+    assert level == estimator.levitated_reference[2] - CONFIG.drop.threshold
+    crossing = 60 + int(np.flatnonzero(measured[60:, 2] < level)[0])
+    estimator.push(stamps[60:crossing], measured[60:crossing])
+    assert estimator.phase == LEVITATED and estimator.drop_level == level
+    update = estimator.push(stamps[crossing : crossing + 1], measured[crossing : crossing + 1])
+    assert estimator.phase == TOUCHDOWN and len(update.estimates.stamps_ns) > 0 and estimator.drop_level is None
 
 
 def test_small_loop_flag_is_added_once_and_merged_into_existing_backend_options():

@@ -386,6 +386,14 @@ class StreamingEstimator:
         """Levitated mean (x, y, z), m; z as `detect_drop` computes it. None while waiting."""
         return None if self._reference is None else self._reference.copy()
 
+    @property
+    def drop_level(self) -> float | None:
+        """z, m, below which a sample reveals a drop (levitated mean minus the threshold);
+        None unless levitated."""
+        if self._phase != LEVITATED or self._reference is None:
+            return None
+        return float(self._reference[2] - self.settings.drop_threshold)
+
     def warm_up(self) -> None:
         """Compile the EKF chunk of every configured length (a few seconds each, cached by JAX)."""
         prior = initial_belief(np.zeros((1, 3)), self._initial_cov, samples=1)

@@ -192,6 +192,8 @@ class EstimatorNode(Node):
         self._diagnostics.restart(self.estimator.counts, 0)
         self._last_diagnostics = 0.0
         self._event_diagnostics_due = False
+        # A sample below it reveals a drop: the estimator runs at once, not at the next flush.
+        self._drop_level: float | None = None
 
         in_qos = qos(node.input_reliability, node.input_depth)
         self.create_subscription(PointStamped, topics.displacement, self._on_sample, in_qos, raw=True)
@@ -261,7 +263,8 @@ class EstimatorNode(Node):
         except messages.MessageError as error:
             self._refuse_message(error)
             return
-        if self._inbox.add_sample(stamp, x, y, z) >= self.config.node.flush_samples:
+        level = self._drop_level
+        if self._inbox.add_sample(stamp, x, y, z) >= self.config.node.flush_samples or (level is not None and z < level):
             self._due()
 
     @quiet_at_shutdown
@@ -272,7 +275,10 @@ class EstimatorNode(Node):
         except messages.MessageError as error:
             self._refuse_message(error)
             return
-        if self._inbox.add_block(stamps, xyz) >= self.config.node.flush_samples:
+        level = self._drop_level
+        if self._inbox.add_block(stamps, xyz) >= self.config.node.flush_samples or (
+            level is not None and np.nanmin(xyz[:, 2], initial=np.inf) < level
+        ):
             self._due()
 
     def _refuse_message(self, error: Exception) -> None:
@@ -331,6 +337,7 @@ class EstimatorNode(Node):
             self._publish(update.estimates)
             self._handle(update.events)
             self._diagnostics.add_processing(time.monotonic_ns() - oldest_ns)
+            self._drop_level = self.estimator.drop_level
 
     def finish(self) -> None:
         """End of input: publish what is held and close a touchdown in progress."""
