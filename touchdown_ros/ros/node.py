@@ -3,8 +3,8 @@
 A thin adapter around `core.streaming.StreamingEstimator`: it decodes samples from
 `/amb/displacement` (geometry_msgs/PointStamped, one per sample) and from the
 batched input (sensor_msgs/PointCloud2, fields t x y z), hands them to the
-estimator in small blocks (every `node.flush_samples` samples or every
-`node.flush_period` s), and publishes what comes back on the `/touchdown/*` topics
+estimator in small blocks (every `node.flush_samples` samples, every
+`node.flush_period` s, and at once when a sample reveals a drop), and publishes what comes back on the `/touchdown/*` topics
 (the same topics and types as the offline output bags) and `/diagnostics`.
 
 Run:  touchdown_estimator [--config RIG.yaml] [--coefficients FILE] [--ros-args --params-file RIG.yaml ...]
