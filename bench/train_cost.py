@@ -194,7 +194,7 @@ def main() -> None:
     print("|---|---:|---:|---:|")
     print(f"| ours: L-BFGS, AD gradient ({ours['steps']} steps) | {ours['seconds']:.1f} | {ours['peak_rss_MiB']:.0f} | {ours['final_loss']:.5g} |")
     shown = f"{base_time:.1f}" if base_time else f"> {baseline['seconds']:.0f} (budget)"
-    print(f"| scipy least_squares, FD Jacobian | {shown} | {baseline['peak_rss_MiB']:.0f} | {baseline['best_loss']:.5g} |")
+    print(f"| scipy least_squares, FD Jacobian, residuals by our jitted JAX filter | {shown} | {baseline['peak_rss_MiB']:.0f} | {baseline['best_loss']:.5g} |")
     numpy_seconds = numpy_eval["seconds_per_evaluation"] * baseline["evaluations"]
     print(f"| scipy least_squares, FD Jacobian, filterpy EKF residuals (extrapolated: {baseline['evaluations']} "
           f"evaluations x {numpy_eval['seconds_per_evaluation']:.1f} s) | {numpy_seconds:.0f} | - | - |")
