@@ -30,6 +30,7 @@ from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
 from touchdown_ros.offline import estimate_bag, estimate_topics, estimator_for
 from touchdown_ros.ros import messages
+from touchdown_ros.ros.diagnostics import LatencyHistogram
 from touchdown_ros.ros.replay import pace
 
 from test_streaming import model_drop_record
@@ -208,6 +209,19 @@ def test_raw_messages_match_rclpy_serialisation(frame_id):
     assert messages.decode_point(serialize_message(point)) == (3_000_000_000, 0.0, 0.0, -2.5e-4)
     with pytest.raises(messages.MessageError):
         messages.decode_point(b"\x00\x01\x00\x00\x01")
+
+
+def test_latency_histogram_percentiles_over_several_adds():
+    histogram = LatencyHistogram()
+    assert np.isnan(histogram.percentile(50))
+    latencies_ns = np.arange(1, 1001) * 10_000  # 0.01 .. 10 ms
+    for part in np.split(latencies_ns, [3, 500, 501]):  # five values per bin: repeats within a call all count
+        histogram.add(part)
+    histogram.add(np.array([5 * 10**9, 7 * 10**9]))  # beyond 1 s: the last bin
+    assert int(histogram.counts.sum()) == 1002
+    # the 50th percentile of the 1002 values is the 501st: 5.01 ms, in the bin [5.00, 5.05) ms
+    assert histogram.percentile(50) == pytest.approx(5.05)
+    assert histogram.percentile(99.9) == pytest.approx(1000.05)
 
 
 def test_batch_cloud_round_trip():

@@ -50,7 +50,7 @@ class LatencyHistogram:
 
     def add(self, latencies_ns: np.ndarray) -> None:
         bins = np.clip(np.asarray(latencies_ns) // self.BIN_NS, 0, self.BINS)
-        self.counts += np.bincount(bins, minlength=self.BINS + 1)
+        np.add.at(self.counts, bins, 1)  # not bincount: that touches all 20,001 bins per call
 
     def percentile(self, q: float) -> float:
         """Upper edge of the bin holding the q-th percentile, ms (NaN before any latency)."""
