@@ -16,7 +16,9 @@ and listens in this process to the estimates:
 Per-sample input is geometry_msgs/PointStamped on /amb/displacement with the
 per-sample /touchdown/* outputs (this process subscribes to /touchdown/contact_force);
 batched input is sensor_msgs/PointCloud2 (100 samples per message) with the batched
-output (/touchdown/estimate_batch), sensor.sample_period set to the input rate.
+output (/touchdown/estimate_batch), sensor.sample_period set to the input rate. A case
+may choose the output (`...:cycle:batch`: per-sample input, batched output, which this
+process then subscribes to).
 
 Run: .venv/bin/python bench/node_throughput.py [--duration 60] [--quick]
 Prints a markdown table (paste it into docs/node.md with the date).
@@ -49,6 +51,11 @@ class Case:
     executor: str  # events | single
     rate: float  # samples/s
     signal: str = "cycle"  # cycle (drops, EKF on 80 % of samples) | levitated (no drop: no EKF)
+    output: str = ""  # per_sample | batch; default: the input's kind
+
+    @property
+    def output_mode(self) -> str:
+        return self.output or ("batch" if self.kind == "batched" else "per_sample")
 
 
 # ------------------------------------------------------------------------------------------- signal
@@ -156,9 +163,9 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.pop("ROS_LOCALHOST_ONLY", None)
     os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    batched = case.kind == "batched"
+    batched_output = case.output_mode == "batch"
     node_args = ["-p", f"node.executor:={case.executor}", "-p", f"sensor.sample_period:={1.0 / case.rate!r}",
-                 "-p", f"node.output_mode:={'batch' if batched else 'per_sample'}"]
+                 "-p", f"node.output_mode:={case.output_mode}"]
     for param in params:
         node_args += ["-p", param]
     log_path = Path(tempfile.gettempdir()) / f"touchdown_bench_node_{case.kind}_{case.executor}_{int(case.rate)}.log"
@@ -201,7 +208,7 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
     # A monitoring consumer. Per sample: best effort (a reliable reader costs the node ~5 us more per
     # message); batched: reliable (one message per EKF run, large when the node is behind).
     sink_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT)
-    if batched:
+    if batched_output:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         peer.create_subscription(PointCloud2, "/touchdown/estimate_batch", on_batch, reliable)
     else:
@@ -289,17 +296,17 @@ def _ms(value: float) -> str:
 
 def table(results: list[dict]) -> str:
     rows = [
-        "| input | executor | signal | rate (samples/s) | sent | lost | behind at the end (s) "
+        "| input | output | executor | signal | rate (samples/s) | sent | lost | behind at the end (s) "
         "| stamp -> published p50 / p99 (ms) | stamp -> received by a subscriber p50 / p99 (ms) "
         "| received p99: without the onset burst / burst (ms) | estimates received | node CPU (% of a core) |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
         c = r["case"]
         lost = r["sent"] - r["received"]
         behind = "-" if r["catch_up_s"] < 0.6 else f"{r['catch_up_s']:.0f}"
         rows.append(
-            f"| {c.kind.replace('_', '-')} | {c.executor} | {c.signal} | {c.rate:,.0f} | {r['sent']:,} | {lost:,} "
+            f"| {c.kind.replace('_', '-')} | {c.output_mode.replace('_', '-')} | {c.executor} | {c.signal} | {c.rate:,.0f} | {r['sent']:,} | {lost:,} "
             f"| {behind} | {_ms(r['node_p50_ms'])} / {_ms(r['node_p99_ms'])} "
             f"| {_ms(r['p50_ms'])} / {_ms(r['p99_ms'])} "
             f"| {_ms(r['p99_without_onset_ms'])} / {_ms(r['p99_onset_ms'])} "
@@ -317,13 +324,14 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=60.0, help="s of publishing per case (default 60)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="extra node parameter for every case, e.g. node.worker:=false")
-    parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL]",
-                        help="e.g. per_sample:events:10000 batched:events:100000:levitated")
+    parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL[:OUTPUT]]",
+                        help="e.g. per_sample:events:10000 batched:events:100000:levitated "
+                             "per_sample:events:10000:cycle:batch (per-sample input, batched output)")
     args = parser.parse_args()
     if args.role == "publisher":
         return publisher_main(args)
     specs = args.cases or [
-        "per_sample:events:10000", "per_sample:single:10000",
+        "per_sample:events:10000", "per_sample:events:10000:cycle:batch", "per_sample:single:10000",
         "batched:events:100000", "batched:events:40000",
         "batched:events:100000:levitated", "batched:single:100000:levitated",
     ]
