@@ -559,7 +559,7 @@ class StreamingEstimator:
             )
         if self._reference is not None:
             z = buffer_etas[:, 2]
-            below = np.flatnonzero(np.isfinite(z) & (z < self._reference[2] - settings.drop_threshold))
+            below = np.flatnonzero(np.isfinite(z) & (z < self.drop_level))
             if below.size:
                 onset = max(0, self._buffer_first + int(below[0]) - settings.fall_samples) - self._buffer_first
                 assert onset >= 0, "buffer trimmed too far"
