@@ -4,8 +4,9 @@ A thin adapter around `core.streaming.StreamingEstimator`: it decodes samples fr
 `/amb/displacement` (geometry_msgs/PointStamped, one per sample) and from the
 batched input (sensor_msgs/PointCloud2, fields t x y z), hands them to the
 estimator in small blocks (every `node.flush_samples` samples, every
-`node.flush_period` s, and at once when a sample reveals a drop), and publishes what comes back on the `/touchdown/*` topics
-(the same topics and types as the offline output bags) and `/diagnostics`.
+`node.flush_period` s, and at once when a sample reveals a drop), and publishes what
+comes back on the `/touchdown/*` topics (the same topics and types as the offline
+output bags) and `/diagnostics`.
 
 Run:  touchdown_estimator [--config RIG.yaml] [--coefficients FILE] [--ros-args --params-file RIG.yaml ...]
 
@@ -264,7 +265,8 @@ class EstimatorNode(Node):
             self._refuse_message(error)
             return
         level = self._drop_level
-        if self._inbox.add_sample(stamp, x, y, z) >= self.config.node.flush_samples or (level is not None and z < level):
+        pending = self._inbox.add_sample(stamp, x, y, z)
+        if pending >= self.config.node.flush_samples or (level is not None and z < level):
             self._due()
 
     @quiet_at_shutdown

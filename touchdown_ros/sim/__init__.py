@@ -1,8 +1,6 @@
 """Drop-test simulator: the truth for tests, demos and benchmarks (never imported by core)."""
-from touchdown_ros.core import xla
+import touchdown_ros.core  # noqa: F401  (sets the XLA options, core.xla, before JAX starts)
 
-xla.configure()
-
-import jax  # noqa: E402  (after the XLA options, before any JAX computation)
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
