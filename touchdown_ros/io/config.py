@@ -48,6 +48,7 @@ class DropDetection:
 
 
 EXECUTORS = ("events", "single")
+RECEIVE_MODES = ("drain", "callback", "inline")
 RELIABILITIES = ("best_effort", "reliable")
 OUTPUT_MODES = ("per_sample", "batch", "both")
 
@@ -67,7 +68,10 @@ class NodeSettings:
     output_depth: int = 10000  # keep-last depth of the output publishers (1 s at 10 kHz)
     flush_period: float = 0.002  # s between timer runs of the EKF on the pending samples
     flush_samples: int = 16  # pending samples that run the EKF at once (without waiting for the timer)
-    worker: bool = True  # run the EKF in a worker thread, receiving continues meanwhile
+    # drain: a worker thread takes the waiting samples itself, many per wake-up, and runs the EKF;
+    # callback: the executor hands over one sample per callback, a worker thread runs the EKF;
+    # inline: the executor's callbacks and timer run the EKF too (no worker thread)
+    receive: str = "drain"
     chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
     diagnostics_period: float = 1.0  # s
     alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
@@ -376,7 +380,7 @@ def _node_settings(read: _Reader) -> NodeSettings:
         output_depth=read.integer("node.output_depth", d.output_depth),
         flush_period=read.number("node.flush_period", d.flush_period, positive=True),
         flush_samples=read.integer("node.flush_samples", d.flush_samples),
-        worker=read.flag("node.worker", d.worker),
+        receive=read.choice("node.receive", d.receive, RECEIVE_MODES),
         chunk_sizes=read.integers("node.chunk_sizes", d.chunk_sizes),
         diagnostics_period=read.number("node.diagnostics_period", d.diagnostics_period, positive=True),
         alarm_force=read.number("node.alarm_force", d.alarm_force, positive=True),

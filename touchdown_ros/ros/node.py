@@ -8,6 +8,10 @@ estimator in small blocks (every `node.flush_samples` samples, every
 comes back on the `/touchdown/*` topics (the same topics and types as the offline
 output bags) and `/diagnostics`.
 
+With `node.receive: drain` (the default) a worker thread takes the per-sample
+messages itself, all that are waiting at each wake-up, so the executor's per-message
+dispatch is not paid at 10 kHz; the executor runs the timers and the batched input.
+
 Run:  touchdown_estimator [--config RIG.yaml] [--coefficients FILE] [--ros-args --params-file RIG.yaml ...]
 
 Parameters are the rig YAML's (ROS 2 parameter-file form); `--config` loads a rig
@@ -33,6 +37,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelWithCovarianceStamped, PointStamped, TwistWithCovarianceStamped, WrenchStamped
+from rclpy import _rclpy_pybind11 as _rclpy
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -57,6 +62,8 @@ ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 #: Minimum time between two event-triggered diagnostics messages, s.
 EVENT_DIAGNOSTICS_INTERVAL = 0.1
 EXIT_CONFIG = 2
+#: Most per-sample messages taken at one wake-up (`receive: drain`); a backlog is estimated in such blocks.
+DRAIN_LIMIT = 512
 
 
 def qos(reliability: str, depth: int) -> QoSProfile:
@@ -121,6 +128,34 @@ class Inbox:
         if self._stamps:
             self._blocks.append((np.array(self._stamps, np.int64), np.array(self._xyz)))
             self._stamps, self._xyz = [], []
+
+
+class DrainedSubscription:
+    """A raw subscription that no executor serves: its owner takes the waiting messages itself.
+
+    Created on the node's handle, so it is the node's subscription in the ROS graph
+    (names resolved and remapped by rcl as for any subscription).
+    """
+
+    def __init__(self, node: Node, msg_type, topic: str, profile: QoSProfile) -> None:
+        self.msg_type = msg_type
+        with node.handle:
+            self.handle = _rclpy.Subscription(node.handle, msg_type, topic, profile.get_c_qos_profile())
+
+    def take(self, limit: int) -> list[bytes]:
+        """Up to `limit` waiting messages as serialized bytes, oldest first."""
+        taken = []
+        with self.handle:
+            take_message = self.handle.take_message
+            for _ in range(limit):
+                message = take_message(self.msg_type, True)
+                if message is None:
+                    break
+                taken.append(message[0])
+        return taken
+
+    def destroy(self) -> None:
+        self.handle.destroy_when_not_in_use()
 
 
 def raw_publish(publisher) -> Callable[[bytes], None]:
@@ -197,21 +232,26 @@ class EstimatorNode(Node):
         self._drop_level: float | None = None
 
         in_qos = qos(node.input_reliability, node.input_depth)
-        self.create_subscription(PointStamped, topics.displacement, self._on_sample, in_qos, raw=True)
+        self._drained: DrainedSubscription | None = None
+        if node.receive == "drain":
+            self._drained = DrainedSubscription(self, PointStamped, topics.displacement, in_qos)
+        else:
+            self.create_subscription(PointStamped, topics.displacement, self._on_sample, in_qos, raw=True)
         self.create_subscription(PointCloud2, node.batch_topic, self._on_batch, in_qos)
+        worker = node.receive != "inline"
         # Without a worker the timer runs the EKF on what is pending; with one, it only sends event diagnostics.
-        timer_period = EVENT_DIAGNOSTICS_INTERVAL / 2 if node.worker else node.flush_period
+        timer_period = EVENT_DIAGNOSTICS_INTERVAL / 2 if worker else node.flush_period
         self.create_timer(timer_period, self._on_flush_timer)
         self.create_timer(node.diagnostics_period, self.publish_diagnostics)
         self._worker = None
-        if node.worker:
+        if worker:
             # Two busy threads share the GIL: switch every 0.5 ms instead of 5 ms, or latency waits on it.
             sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
             self._worker = threading.Thread(target=self._work, name="touchdown_ekf", daemon=True)
             self._worker.start()
         self.get_logger().info(
-            f"listening on {topics.displacement} (PointStamped) and {node.batch_topic} (PointCloud2), "
-            f"{node.input_reliability}; model: {self.model_info.message}"
+            f"listening on {topics.displacement} (PointStamped, receive: {node.receive}) and {node.batch_topic} "
+            f"(PointCloud2), {node.input_reliability}; model: {self.model_info.message}"
         )
         self.publish_diagnostics()
 
@@ -283,6 +323,36 @@ class EstimatorNode(Node):
         ):
             self._due()
 
+    def _take_waiting(self) -> tuple[int, bool]:
+        """Move the waiting per-sample messages (`receive: drain`) to the inbox: (taken, one reveals a drop)."""
+        taken = self._drained.take(DRAIN_LIMIT)
+        if not taken:
+            return 0, False
+        self.messages += len(taken)
+        stamps, xyz = [], []
+        for data in taken:
+            try:
+                stamp, x, y, z = messages.decode_point(data)
+            except messages.MessageError as error:
+                self._refuse_message(error)
+                continue
+            stamps.append(stamp)
+            xyz.append((x, y, z))
+        if not stamps:
+            return len(taken), False
+        self._inbox.add_block(np.array(stamps, np.int64), np.array(xyz))
+        level = self._drop_level
+        return len(taken), level is not None and min(z for _, _, z in xyz) < level
+
+    def _wait_before_flush(self) -> float:
+        """0 when the pending samples should be estimated now, else how long to wait for more, s."""
+        node = self.config.node
+        pending = self._inbox.count
+        age = (time.monotonic_ns() - self._inbox.oldest_ns) / 1e9 if pending else 0.0
+        if pending >= node.flush_samples or age >= node.flush_period:
+            return 0.0
+        return min(node.flush_period - age, (node.flush_samples - pending) * self.config.sample_period)
+
     def _refuse_message(self, error: Exception) -> None:
         self.malformed += 1
         self.get_logger().warning(f"message refused: {error}", throttle_duration_sec=1.0)
@@ -302,17 +372,33 @@ class EstimatorNode(Node):
             self.publish_diagnostics()
 
     def _work(self) -> None:
-        """Worker thread: the EKF (which releases the GIL) runs while the executor keeps receiving."""
+        """Worker thread: the EKF (which releases the GIL) runs while the executor serves the rest.
+
+        With `receive: drain` it also takes the per-sample messages, all that wait at each
+        wake-up, and sleeps until a flush's worth is expected (or a batch wakes it).
+        """
         period = self.config.node.flush_period
         while not self._stopping:
-            self._wake.wait(timeout=period)
-            self._wake.clear()
             try:
+                if self._drained is None:
+                    self._wake.wait(timeout=period)
+                else:
+                    _, crossed = self._take_waiting()
+                    wait = 0.0 if crossed else self._wait_before_flush()
+                    if wait > 0.0:
+                        self._wake.wait(timeout=wait)
+                        self._wake.clear()
+                        continue
+                self._wake.clear()
                 self.flush()
             except RCLError:
                 if self.context.ok():
                     raise
                 return
+            except Exception as error:  # a bug must not stop the estimates: report it loudly, keep going
+                self.internal_errors += 1
+                self.get_logger().error(f"worker: {error!r}", throttle_duration_sec=1.0)
+                time.sleep(period)
 
     def stop_worker(self) -> None:
         if self._worker is not None:
@@ -320,6 +406,13 @@ class EstimatorNode(Node):
             self._wake.set()
             self._worker.join(timeout=5.0)
             self._worker = None
+
+    def destroy_node(self) -> None:
+        self.stop_worker()
+        if self._drained is not None:
+            self._drained.destroy()
+            self._drained = None
+        super().destroy_node()
 
     # ------------------------------------------------------------------ estimation and output
     def flush(self) -> None:
@@ -344,6 +437,9 @@ class EstimatorNode(Node):
     def finish(self) -> None:
         """End of input: publish what is held and close a touchdown in progress."""
         self.stop_worker()
+        if self._drained is not None:
+            while self._take_waiting()[0]:
+                self.flush()
         self.flush()
         with self._lock:
             update = self.estimator.finish()

@@ -96,7 +96,7 @@ class Recorder:
         out = []
         for track in self.tracks.values():
             stamps = np.asarray(track.stamps, dtype=np.int64)
-            values = np.asarray(track.values, dtype=np.float64).reshape(len(stamps), -1)
+            values = np.asarray(track.values, dtype=np.float64).reshape(len(stamps), messages.FLOAT64_FIELDS[track.msgtype])
             stamps, first = np.unique(stamps, return_index=True)
             values = values[first]
             covariance = None
@@ -285,6 +285,11 @@ def replay_main(argv: Sequence[str] | None = None) -> int:
     if recorder is None:
         return EXIT_OK
     last = int(series.stamps_ns[-1]) - int(config.node.grid_tolerance * config.sample_period * 1e9)
+    silent = [topic for topic, count in recorder.counts().items() if count == 0]
+    if silent:
+        print(f"touchdown replay: error: no estimates received on {', '.join(silent)}; {args.record} not written",
+              file=sys.stderr)
+        return EXIT_INCOMPLETE
     write_bag(args.record, recorder.series(), overwrite=args.overwrite)
     print(f"recorded {recorder.counts()} to {args.record}")
     return EXIT_OK if recorder.reached(last) else EXIT_INCOMPLETE
