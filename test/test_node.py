@@ -49,8 +49,8 @@ LAST = "touchdown_estimator: last touchdown"
 
 
 def domain(offset: int) -> int:
-    """A ROS_DOMAIN_ID for this test run (10..89), different per test."""
-    return 10 + (os.getpid() % 20) * 4 + offset
+    """A ROS_DOMAIN_ID for this test run (10..109), different per test (offset 0..4)."""
+    return 10 + (os.getpid() % 20) * 5 + offset
 
 
 def ros_env(domain_id: int) -> dict[str, str]:
@@ -280,13 +280,57 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert node.alive()
 
     for bag_out in (recorded, recorded_batched):
-        for series in estimate_topics(expected.estimate, CONFIG):
-            got = read_vector_topic(bag_out, series.topic)
-            assert got is not None and got.msgtype.endswith(series.msgtype), series.topic
-            np.testing.assert_array_equal(got.stamps_ns, series.stamps_ns, err_msg=f"{series.topic} ({source})")
-            assert_close(got.values, np.asarray(series.values), series.topic)
-            if series.covariance is not None:
-                assert_close(got.covariance, np.asarray(series.covariance), series.topic + " covariance")
+        assert_recorded_estimates(bag_out, expected.estimate, source)
+
+
+def assert_recorded_estimates(bag: Path, estimate, source: str) -> None:
+    """The /touchdown/* topics recorded in `bag` equal the offline estimate (stamps exactly, values to 1e-9)."""
+    for series in estimate_topics(estimate, CONFIG):
+        got = read_vector_topic(bag, series.topic)
+        assert got is not None and got.msgtype.endswith(series.msgtype), series.topic
+        np.testing.assert_array_equal(got.stamps_ns, series.stamps_ns, err_msg=f"{series.topic} ({source})")
+        assert_close(got.values, np.asarray(series.values), series.topic)
+        if series.covariance is not None:
+            assert_close(got.covariance, np.asarray(series.covariance), series.topic + " covariance")
+
+
+@pytest.mark.parametrize("receive,output_mode", [("callback", "per_sample"), ("inline", "per_sample"),
+                                                 ("drain", "batch")])
+def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp_path, receive, output_mode):
+    """The other `node.receive` modes, and the batched output (one PointCloud2 per EKF run) with drain."""
+    bag, source = drop_bag(tmp_path / "drop")
+    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, Coefficients.zeros(CONFIG.kernel))).estimate
+    recorded = tmp_path / "live"
+    clouds: list[PointCloud2] = []
+    d = domain(4)
+    args = ["--ros-args", "-p", f"node.receive:={receive}", "-p", f"node.output_mode:={output_mode}", *FAST_NODE]
+    with Peer(d) as peer, NodeProcess(tmp_path, d, args) as node:
+        peer.node.create_subscription(PointCloud2, CONFIG.node.batch_output_topic, clouds.append,
+                                      QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
+        peer.wait_ready(node)
+        record = ["--record", str(recorded)] if output_mode == "per_sample" else []
+        replay = subprocess.run([sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), *record, "--timeout", "30"],
+                                env=ros_env(d), capture_output=True, text=True, timeout=240)
+        assert replay.returncode == 0, f"{replay.stdout}\n{replay.stderr}\nnode:\n{node.log()}"
+        n_samples = int(expected.onset_index + len(expected.stamps_ns))
+        assert peer.wait_for(lambda: peer.count("received") == n_samples, 20), (peer.latest.get(INPUT), node.log())
+        if output_mode == "batch":
+            n_estimates = len(expected.stamps_ns)
+            assert peer.wait_for(lambda: sum(c.width for c in clouds) == n_estimates, 20), node.log()
+        assert "receive: " + receive in node.log()
+    if output_mode == "per_sample":
+        assert_recorded_estimates(recorded, expected, source)
+        return
+    columns = np.concatenate([messages.cloud_columns(c, messages.BATCH_OUTPUT_FIELDS) for c in clouds])
+    stamps = np.concatenate([messages.stamp_ns_of(c.header.stamp) + np.rint(messages.cloud_columns(c, ("t",))[:, 0] * 1e9)
+                             .astype(np.int64) for c in clouds])
+    np.testing.assert_array_equal(stamps, expected.stamps_ns)
+    field = {name: i for i, name in enumerate(messages.BATCH_OUTPUT_FIELDS)}
+    filtered = expected.filtered
+    for names, values in ((("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:]),
+                          (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
+                          (("fx", "fy", "fz"), np.asarray(filtered.force_xyz))):
+        assert_close(columns[:, [field[n] for n in names]], values, "/".join(names))
 
 
 def test_drop_relevitation_alarm_and_every_bad_input_counted(tmp_path):

@@ -42,6 +42,7 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.type_support import check_is_valid_msg_type
 from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.core.effects import gates_for
@@ -139,6 +140,7 @@ class DrainedSubscription:
 
     def __init__(self, node: Node, msg_type, topic: str, profile: QoSProfile) -> None:
         self.msg_type = msg_type
+        check_is_valid_msg_type(msg_type)  # also loads the type support, as create_subscription does
         with node.handle:
             self.handle = _rclpy.Subscription(node.handle, msg_type, topic, profile.get_c_qos_profile())
 
