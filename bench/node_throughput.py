@@ -120,6 +120,7 @@ def publisher_main(args: argparse.Namespace) -> int:
     cpu0 = time.process_time()
     sent = 0
     unit = BATCH if batched else 1
+    late = []  # per sample: sent (after its publish call) - stamp, ns
     while sent < total:
         due = min(total, int((time.perf_counter() - start) * args.rate) // unit * unit)
         if due >= sent + unit or due == total and due > sent:
@@ -133,12 +134,15 @@ def publisher_main(args: argparse.Namespace) -> int:
             else:
                 for blob in messages.encode_fixed(layout, stamps, xyz):
                     publisher.publish(blob)
+            late.append(time.time_ns() - stamps)
             sent = due
         else:
             time.sleep(0.0002)
     seconds = time.perf_counter() - start
+    late_ms = np.concatenate(late) / 1e6
     print(json.dumps({"sent": sent, "seconds": seconds, "cpu": time.process_time() - cpu0, "start_ns": start_ns,
-                      "period_ns": period_ns, "cycle": len(cycle)}), flush=True)
+                      "period_ns": period_ns, "cycle": len(cycle), "late_p50_ms": float(np.percentile(late_ms, 50)),
+                      "late_p99_ms": float(np.percentile(late_ms, 99))}), flush=True)
     time.sleep(1.0)
     node.destroy_node()
     rclpy.shutdown()
@@ -276,6 +280,8 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
             "in_node_worst_p99_ms": worst_p99[1],
             "node_cpu_pct": 100.0 * cpu_node / wall,
             "publisher_cpu_pct": 100.0 * report["cpu"] / report["seconds"],
+            "publisher_late_p50_ms": report["late_p50_ms"],
+            "publisher_late_p99_ms": report["late_p99_ms"],
         }
     finally:
         if node.poll() is None:
@@ -298,8 +304,9 @@ def table(results: list[dict]) -> str:
     rows = [
         "| input | output | executor | signal | rate (samples/s) | sent | lost | behind at the end (s) "
         "| stamp -> published p50 / p99 (ms) | stamp -> received by a subscriber p50 / p99 (ms) "
-        "| received p99: without the onset burst / burst (ms) | estimates received | node CPU (% of a core) |",
-        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| received p99: without the onset burst / burst (ms) | estimates received | node CPU (% of a core) "
+        "| publisher: stamp -> sent p50 / p99 (ms), CPU (%) |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
         c = r["case"]
@@ -310,7 +317,8 @@ def table(results: list[dict]) -> str:
             f"| {behind} | {_ms(r['node_p50_ms'])} / {_ms(r['node_p99_ms'])} "
             f"| {_ms(r['p50_ms'])} / {_ms(r['p99_ms'])} "
             f"| {_ms(r['p99_without_onset_ms'])} / {_ms(r['p99_onset_ms'])} "
-            f"| {r['estimates_received']:,} of {r['estimated']:,} | {r['node_cpu_pct']:.0f} |"
+            f"| {r['estimates_received']:,} of {r['estimated']:,} | {r['node_cpu_pct']:.0f} "
+            f"| {_ms(r['publisher_late_p50_ms'])} / {_ms(r['publisher_late_p99_ms'])}, {r['publisher_cpu_pct']:.0f} |"
         )
     return "\n".join(rows)
 
@@ -323,7 +331,7 @@ def main() -> int:
     parser.add_argument("--signal", choices=("cycle", "levitated"), default="cycle")
     parser.add_argument("--duration", type=float, default=60.0, help="s of publishing per case (default 60)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
-                        help="extra node parameter for every case, e.g. node.worker:=false")
+                        help="extra node parameter for every case, e.g. node.receive:=callback")
     parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL[:OUTPUT]]",
                         help="e.g. per_sample:events:10000 batched:events:100000:levitated "
                              "per_sample:events:10000:cycle:batch (per-sample input, batched output)")
