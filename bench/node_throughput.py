@@ -34,6 +34,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +43,7 @@ import numpy as np
 
 BATCH = 100  # samples per PointCloud2 in batched mode
 LEVITATED_BEFORE_DROP = 0.02  # s of levitation at the start of each cycle
+SINK_POLL = 0.0005  # s between two takes of the per-sample sink (its latency resolution)
 ONSET_ROWS = 25  # estimates after each drop onset counted as the onset burst (fall time ~2 ms + 0.5 ms)
 
 
@@ -100,6 +102,8 @@ def publisher_main(args: argparse.Namespace) -> int:
 
     from touchdown_ros.ros import messages
 
+    if args.publisher_priority:  # the AMB controller / sensor driver it stands for runs real-time
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.publisher_priority))
     period = 1.0 / args.rate
     cycle = drop_cycle(period, signal=args.signal)
     rclpy.init()
@@ -155,7 +159,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -> dict:
+def run_case(case: Case, duration: float, domain: int, params: list[str] = (), publisher_priority: int = 0) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import WrenchStamped
@@ -163,6 +167,7 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
     from sensor_msgs.msg import PointCloud2
 
     from touchdown_ros.ros import messages
+    from touchdown_ros.ros.node import DrainedSubscription
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.pop("ROS_LOCALHOST_ONLY", None)
@@ -188,11 +193,17 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
     diagnostics: dict[str, dict[str, str]] = {}
     worst_p99 = [0.0, 0.0]  # node: stamp -> published, arrival -> published (worst 1 s period)
 
-    def on_wrench(data: bytes) -> None:
-        now = time.time_ns()
+    def on_wrench(data: bytes, now: int) -> None:
         sec, nanosec = struct.unpack_from("<iI", data, 4)
         latencies.append(now - (sec * 1_000_000_000 + nanosec))
         latency_stamps.append(sec * 1_000_000_000 + nanosec)
+
+    def drain_wrenches(subscription: DrainedSubscription, stop: threading.Event) -> None:
+        """The per-sample sink: takes what waits every SINK_POLL s (cheaper than a callback per message)."""
+        while not stop.is_set():
+            for data in subscription.take(10000):
+                on_wrench(data, time.time_ns())
+            time.sleep(SINK_POLL)
 
     def on_batch(message: PointCloud2) -> None:
         now = time.time_ns()
@@ -210,13 +221,18 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
                 worst_p99[1] = max(worst_p99[1], float(values.get("in_node_p99_ms", "nan")))
 
     # A monitoring consumer. Per sample: best effort (a reliable reader costs the node ~5 us more per
-    # message); batched: reliable (one message per EKF run, large when the node is behind).
+    # message), drained by a thread like the node's input; batched: reliable (one message per EKF run,
+    # large when the node is behind).
     sink_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT)
+    stop_sink = threading.Event()
+    sink = None
     if batched_output:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         peer.create_subscription(PointCloud2, "/touchdown/estimate_batch", on_batch, reliable)
     else:
-        peer.create_subscription(WrenchStamped, "/touchdown/contact_force", on_wrench, sink_qos, raw=True)
+        wrenches = DrainedSubscription(peer, WrenchStamped, "/touchdown/contact_force", sink_qos)
+        sink = threading.Thread(target=drain_wrenches, args=(wrenches, stop_sink), daemon=True)
+        sink.start()
     peer.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 100)
 
     never = rclpy.task.Future()
@@ -232,15 +248,17 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
             raise RuntimeError("node did not start")
         publisher = subprocess.Popen(
             [sys.executable, __file__, "--role", "publisher", "--kind", case.kind, "--rate", str(case.rate),
-             "--duration", str(duration), "--signal", case.signal], env=env, stdout=subprocess.PIPE, text=True,
+             "--duration", str(duration), "--signal", case.signal, "--publisher-priority", str(publisher_priority)],
+            env=env, stdout=subprocess.PIPE, text=True,
         )
         received = lambda: int(diagnostics.get("touchdown_estimator: input", {}).get("received", -1))  # noqa: E731
         spin_until(lambda: received() > 0 or publisher.poll() is not None, 120)
-        cpu_start, wall_start = cpu_seconds(node.pid), time.monotonic()
+        cpu_start, wall_start, own_cpu_start = cpu_seconds(node.pid), time.monotonic(), time.process_time()
         worst_p99[:] = [0.0, 0.0]
         spin_until(lambda: publisher.poll() is not None, duration + 120)
         cpu_node = cpu_seconds(node.pid) - cpu_start
         wall = time.monotonic() - wall_start
+        cpu_own = time.process_time() - own_cpu_start
         report = json.loads(publisher.stdout.read().strip().splitlines()[-1])
         sent = report["sent"]
         # Let the node work off a backlog: until it has everything or makes no progress for 3 s.
@@ -279,11 +297,15 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = ()) -
             "node_worst_p99_ms": worst_p99[0],
             "in_node_worst_p99_ms": worst_p99[1],
             "node_cpu_pct": 100.0 * cpu_node / wall,
+            "subscriber_cpu_pct": 100.0 * cpu_own / wall,
             "publisher_cpu_pct": 100.0 * report["cpu"] / report["seconds"],
             "publisher_late_p50_ms": report["late_p50_ms"],
             "publisher_late_p99_ms": report["late_p99_ms"],
         }
     finally:
+        stop_sink.set()
+        if sink is not None:
+            sink.join(timeout=5)
         if node.poll() is None:
             node.send_signal(signal.SIGINT)
             try:
@@ -305,8 +327,8 @@ def table(results: list[dict]) -> str:
         "| input | output | executor | signal | rate (samples/s) | sent | lost | behind at the end (s) "
         "| stamp -> published p50 / p99 (ms) | stamp -> received by a subscriber p50 / p99 (ms) "
         "| received p99: without the onset burst / burst (ms) | estimates received | node CPU (% of a core) "
-        "| publisher: stamp -> sent p50 / p99 (ms), CPU (%) |",
-        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| publisher: stamp -> sent p50 / p99 (ms), CPU (%) | subscriber CPU (%) |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
         c = r["case"]
@@ -318,7 +340,8 @@ def table(results: list[dict]) -> str:
             f"| {_ms(r['p50_ms'])} / {_ms(r['p99_ms'])} "
             f"| {_ms(r['p99_without_onset_ms'])} / {_ms(r['p99_onset_ms'])} "
             f"| {r['estimates_received']:,} of {r['estimated']:,} | {r['node_cpu_pct']:.0f} "
-            f"| {_ms(r['publisher_late_p50_ms'])} / {_ms(r['publisher_late_p99_ms'])}, {r['publisher_cpu_pct']:.0f} |"
+            f"| {_ms(r['publisher_late_p50_ms'])} / {_ms(r['publisher_late_p99_ms'])}, {r['publisher_cpu_pct']:.0f} "
+            f"| {r['subscriber_cpu_pct']:.0f} |"
         )
     return "\n".join(rows)
 
@@ -332,6 +355,9 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=60.0, help="s of publishing per case (default 60)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="extra node parameter for every case, e.g. node.receive:=callback")
+    parser.add_argument("--publisher-priority", type=int, default=0, metavar="P",
+                        help="run the publisher at SCHED_FIFO priority P, as the AMB controller it stands for "
+                             "(with -p node.realtime_priority:=N, N < P); default 0: normal scheduling")
     parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL[:OUTPUT]]",
                         help="e.g. per_sample:events:10000 batched:events:100000:levitated "
                              "per_sample:events:10000:cycle:batch (per-sample input, batched output)")
@@ -350,11 +376,14 @@ def main() -> int:
     results = []
     for i, case in enumerate(cases):
         print(f"running {case} for {args.duration:.0f} s ...", file=sys.stderr, flush=True)
-        result = run_case(case, args.duration, domain=60 + i, params=args.param)
+        result = run_case(case, args.duration, domain=60 + i, params=args.param,
+                          publisher_priority=args.publisher_priority)
         print(f"  {result}", file=sys.stderr, flush=True)
         results.append(result)
     load = os.getloadavg()[0]
     extra = f", node parameters {' '.join(args.param)}" if args.param else ""
+    if args.publisher_priority:
+        extra += f", publisher at SCHED_FIFO {args.publisher_priority}"
     print(f"\nMeasured {time.strftime('%Y-%m-%d')} on {os.cpu_count()} cores (load average {load:.1f} at the end), "
           f"{args.duration:.0f} s per case{extra}.\n")
     print(table(results))

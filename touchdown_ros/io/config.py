@@ -72,6 +72,7 @@ class NodeSettings:
     # callback: the executor hands over one sample per callback, a worker thread runs the EKF;
     # inline: the executor's callbacks and timer run the EKF too (no worker thread)
     receive: str = "drain"
+    realtime_priority: int = 0  # SCHED_FIFO priority (1-99) of the node's threads; 0: normal scheduling
     chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
     diagnostics_period: float = 1.0  # s
     alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
@@ -243,10 +244,12 @@ class _Reader:
             raise ConfigError(f"{self.source}: parameter '{key}' must be one of {', '.join(allowed)}, got {value!r}")
         return value
 
-    def integer(self, key: str, default: Any = ..., minimum: int = 1) -> int:
+    def integer(self, key: str, default: Any = ..., minimum: int = 1, maximum: int | None = None) -> int:
         value = self._get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be an integer >= {minimum}, got {value!r}")
+        if (isinstance(value, bool) or not isinstance(value, int) or value < minimum
+                or maximum is not None and value > maximum):
+            bounds = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+            raise ConfigError(f"{self.source}: parameter '{key}' must be an integer {bounds}, got {value!r}")
         return value
 
     def integers(self, key: str, default: tuple[int, ...], minimum: int = 1) -> tuple[int, ...]:
@@ -381,6 +384,7 @@ def _node_settings(read: _Reader) -> NodeSettings:
         flush_period=read.number("node.flush_period", d.flush_period, positive=True),
         flush_samples=read.integer("node.flush_samples", d.flush_samples),
         receive=read.choice("node.receive", d.receive, RECEIVE_MODES),
+        realtime_priority=read.integer("node.realtime_priority", d.realtime_priority, minimum=0, maximum=99),
         chunk_sizes=read.integers("node.chunk_sizes", d.chunk_sizes),
         diagnostics_period=read.number("node.diagnostics_period", d.diagnostics_period, positive=True),
         alarm_force=read.number("node.alarm_force", d.alarm_force, positive=True),

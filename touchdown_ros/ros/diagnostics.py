@@ -121,6 +121,7 @@ def statuses(
     pending: int,
     alarm_force: float,
     hardware_id: str,
+    scheduling: str = "normal",
 ) -> list[DiagnosticStatus]:
     """The diagnostic statuses of one publication."""
     now = time.monotonic()
@@ -183,6 +184,7 @@ def statuses(
                 "in_node_p99_ms": in_node_p99,
                 "latency_total_p50_ms": histogram.percentile(50),
                 "latency_total_p99_ms": histogram.percentile(99),
+                "scheduling": scheduling,
             },
             hardware_id,
         )

@@ -197,6 +197,8 @@ class EstimatorNode(Node):
         gates = gates_for(model.effects, {name: "true" for name in node.conditions})
         model = model._replace(effects=model.effects.with_gates(gates))
         self.estimator = StreamingEstimator(model, self.config.noise, settings)
+        # Before warm_up and the worker start: threads created later inherit the policy.
+        self.scheduling = self._set_scheduling(node.realtime_priority)
         started = time.monotonic()
         self.estimator.warm_up()
         self.get_logger().info(
@@ -252,7 +254,7 @@ class EstimatorNode(Node):
             self._worker.start()
         self.get_logger().info(
             f"listening on {topics.displacement} (PointStamped, receive: {node.receive}) and {node.batch_topic} "
-            f"(PointCloud2), {node.input_reliability}; model: {self.model_info.message}"
+            f"(PointCloud2), {node.input_reliability}; scheduling {self.scheduling}; model: {self.model_info.message}"
         )
         self.publish_diagnostics()
 
@@ -274,6 +276,22 @@ class EstimatorNode(Node):
             flat["node.coefficients"] = coefficients
         source = str(base_config) if base_config else base.source
         return config_from_parameters(flat, source=f"{source} + ROS parameters of {self.get_fully_qualified_name()}")
+
+    def _set_scheduling(self, priority: int) -> str:
+        """SCHED_FIFO `priority` for every thread of the process (0: leave it); what is in effect, as text."""
+        if priority == 0:
+            return "normal"
+        try:
+            for thread in os.listdir("/proc/self/task"):
+                os.sched_setscheduler(int(thread), os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as error:  # EPERM without CAP_SYS_NICE / rtprio limit; not Linux
+            for thread in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
+                with contextlib.suppress(OSError):
+                    os.sched_setscheduler(int(thread), os.SCHED_OTHER, os.sched_param(0))
+            self.get_logger().warning(f"node.realtime_priority {priority}: SCHED_FIFO refused ({error}); "
+                                      "running with normal scheduling (needs CAP_SYS_NICE or an rtprio limit)")
+            return f"normal (SCHED_FIFO {priority} refused: {error})"
+        return f"SCHED_FIFO {priority}"
 
     def _load_model(self, path: str):
         """(ModelInfo, Model); a bad coefficient file falls back to the constant model (the rig's effects)."""
@@ -545,6 +563,7 @@ class EstimatorNode(Node):
                 pending=self._inbox.count,
                 alarm_force=node.alarm_force,
                 hardware_id=self.config.source.split(" + ")[0],
+                scheduling=self.scheduling,
             ),
         )
         self.pub_diagnostics.publish(array)
