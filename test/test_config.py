@@ -39,6 +39,8 @@ def test_named_node_section_and_overrides(tmp_path):
         (("      mass: 240.0                     # kg\n", ""), "missing parameter 'rig.mass'"),
         (("measurement_noise: 2.0e-6", "measurement_noise: [1, 2]"), "'filter.measurement_noise' must be a finite"),
         (("process_noise: [", "process_noise: [1.0, "), "'filter.process_noise' must have 7 values"),
+        (("realtime_priority: 0 ", "realtime_priority: 100 "), "'node.realtime_priority' must be an integer in 0..99"),
+        (("receive: drain ", "receive: polled "), "'node.receive' must be one of"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):

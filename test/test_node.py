@@ -46,6 +46,7 @@ INPUT = "touchdown_estimator: input"
 MODEL = "touchdown_estimator: model"
 CONTACT = "touchdown_estimator: contact"
 LAST = "touchdown_estimator: last touchdown"
+FILTER = "touchdown_estimator: filter"
 
 
 def domain(offset: int) -> int:
@@ -283,6 +284,12 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert_recorded_estimates(bag_out, expected.estimate, source)
 
 
+def fifo_allowed() -> bool:
+    """Whether a process here may switch itself to SCHED_FIFO (root or CAP_SYS_NICE / an rtprio limit)."""
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+
+
 def assert_recorded_estimates(bag: Path, estimate, source: str) -> None:
     """The /touchdown/* topics recorded in `bag` equal the offline estimate (stamps exactly, values to 1e-9)."""
     for series in estimate_topics(estimate, CONFIG):
@@ -304,6 +311,9 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     clouds: list[PointCloud2] = []
     d = domain(4)
     args = ["--ros-args", "-p", f"node.receive:={receive}", "-p", f"node.output_mode:={output_mode}", *FAST_NODE]
+    realtime = receive == "drain"  # and SCHED_FIFO where this machine allows it
+    if realtime:
+        args += ["-p", "node.realtime_priority:=5"]
     with Peer(d) as peer, NodeProcess(tmp_path, d, args) as node:
         peer.node.create_subscription(PointCloud2, CONFIG.node.batch_output_topic, clouds.append,
                                       QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
@@ -318,6 +328,15 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
             n_estimates = len(expected.stamps_ns)
             assert peer.wait_for(lambda: sum(c.width for c in clouds) == n_estimates, 20), node.log()
         assert "receive: " + receive in node.log()
+        if realtime:
+            scheduling = peer.value(FILTER, "scheduling")
+            if fifo_allowed():
+                assert scheduling == "SCHED_FIFO 5", scheduling
+                threads = list(Path(f"/proc/{node.process.pid}/task").iterdir())
+                assert len(threads) > 3 and all(os.sched_getscheduler(int(t.name)) == os.SCHED_FIFO for t in threads)
+            else:
+                assert scheduling.startswith("normal (SCHED_FIFO 5 refused"), scheduling
+                assert "SCHED_FIFO refused" in node.log()
     if output_mode == "per_sample":
         assert_recorded_estimates(recorded, expected, source)
         return

@@ -394,7 +394,8 @@ class EstimatorNode(Node):
         """Worker thread: the EKF (which releases the GIL) runs while the executor serves the rest.
 
         With `receive: drain` it also takes the per-sample messages, all that wait at each
-        wake-up, and sleeps until a flush's worth is expected (or a batch wakes it).
+        wake-up, and sleeps until a flush's worth is expected (or a batch wakes it); while
+        none arrive it looks every `flush_period`.
         """
         period = self.config.node.flush_period
         while not self._stopping:
@@ -402,8 +403,13 @@ class EstimatorNode(Node):
                 if self._drained is None:
                     self._wake.wait(timeout=period)
                 else:
-                    _, crossed = self._take_waiting()
-                    wait = 0.0 if crossed else self._wait_before_flush()
+                    taken, crossed = self._take_waiting()
+                    if crossed:
+                        wait = 0.0
+                    elif not taken and not self._inbox.count:  # per-sample input idle: no polling at its rate
+                        wait = period
+                    else:
+                        wait = self._wait_before_flush()
                     if wait > 0.0:
                         self._wake.wait(timeout=wait)
                         self._wake.clear()
