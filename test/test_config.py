@@ -41,6 +41,7 @@ def test_named_node_section_and_overrides(tmp_path):
         (("process_noise: [", "process_noise: [1.0, "), "'filter.process_noise' must have 7 values"),
         (("realtime_priority: 0 ", "realtime_priority: 100 "), "'node.realtime_priority' must be an integer in 0..99"),
         (("receive: drain ", "receive: polled "), "'node.receive' must be one of"),
+        (("receive: drain ", "worker: true "), "node.worker: replaced by node.receive"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):

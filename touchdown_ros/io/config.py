@@ -51,6 +51,8 @@ EXECUTORS = ("events", "single")
 RECEIVE_MODES = ("drain", "callback", "inline")
 RELIABILITIES = ("best_effort", "reliable")
 OUTPUT_MODES = ("per_sample", "batch", "both")
+#: Parameters of earlier versions, and what replaces them.
+RENAMED = {"node.worker": "replaced by node.receive (true: drain or callback, false: inline)"}
 
 
 @dataclass(frozen=True)
@@ -323,7 +325,8 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
     if unknown:
-        raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}")
+        hints = "".join(f"; {name}: {RENAMED[name]}" for name in unknown if name in RENAMED)
+        raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}{hints}")
     return config
 
 
