@@ -450,6 +450,17 @@ def test_mismatched_coefficient_file_runs_the_constant_model_with_an_error(tmp_p
         assert peer.wait_for(lambda: peer.count("received") == 100 and peer.value(CONTACT, "phase") == "levitated",
                              10), peer.latest
         assert peer.latest[MODEL]["level"] == ERROR  # still reported, every period
+
+        # A replay that gets no estimates back (the rotor never drops) writes no bag and says why.
+        levitated, recorded = tmp_path / "levitated", tmp_path / "nothing_recorded"
+        write_bag(levitated, [TopicSeries(CONFIG.topics.displacement, "PointStamped", stamps + 10**9,
+                                          np.zeros((100, 3)), frame_id=CONFIG.topics.frame_id)])
+        replay = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.ros.replay", str(levitated), "--record", str(recorded),
+             "--timeout", "2"], env=ros_env(d), capture_output=True, text=True, timeout=120,
+        )
+        assert replay.returncode == 4 and "no estimates received on /touchdown/" in replay.stderr, replay.stderr
+        assert not recorded.exists()
         assert node.alive()
 
 
