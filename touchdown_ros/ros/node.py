@@ -323,9 +323,8 @@ class EstimatorNode(Node):
         except messages.MessageError as error:
             self._refuse_message(error)
             return
-        level = self._drop_level
         pending = self._inbox.add_sample(stamp, x, y, z)
-        if pending >= self.config.node.flush_samples or (level is not None and z < level):
+        if pending >= self.config.node.flush_samples or self._reveals_drop(z):
             self._due()
 
     @quiet_at_shutdown
@@ -336,10 +335,8 @@ class EstimatorNode(Node):
         except messages.MessageError as error:
             self._refuse_message(error)
             return
-        level = self._drop_level
-        if self._inbox.add_block(stamps, xyz) >= self.config.node.flush_samples or (
-            level is not None and np.nanmin(xyz[:, 2], initial=np.inf) < level
-        ):
+        pending = self._inbox.add_block(stamps, xyz)
+        if pending >= self.config.node.flush_samples or self._reveals_drop(np.nanmin(xyz[:, 2], initial=np.inf)):
             self._due()
 
     def _take_waiting(self) -> tuple[int, bool]:
@@ -360,8 +357,12 @@ class EstimatorNode(Node):
         if not stamps:
             return len(taken), False
         self._inbox.add_block(np.array(stamps, np.int64), np.array(xyz))
+        return len(taken), self._reveals_drop(min(z for _, _, z in xyz))
+
+    def _reveals_drop(self, lowest_z: float) -> bool:
+        """A sample this low (m) shows the rotor falling: estimate now, not at the next flush."""
         level = self._drop_level
-        return len(taken), level is not None and min(z for _, _, z in xyz) < level
+        return level is not None and lowest_z < level
 
     def _wait_before_flush(self) -> float:
         """0 when the pending samples should be estimated now, else how long to wait for more, s."""
