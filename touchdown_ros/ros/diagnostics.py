@@ -60,12 +60,19 @@ class LatencyHistogram:
         index = int(np.searchsorted(np.cumsum(self.counts), math.ceil(q / 100.0 * total)))
         return (index + 1) * self.BIN_NS / 1e6
 
+    def copy(self) -> LatencyHistogram:
+        """An independent copy (a snapshot to compute percentiles from while this one grows)."""
+        snapshot = LatencyHistogram()
+        snapshot.counts[:] = self.counts
+        return snapshot
+
 
 @dataclass
 class DiagnosticsState:
-    """Everything one diagnostics period accumulates; `restart()` begins the next period."""
+    """Everything one diagnostics period accumulates; `close()` ends it and begins the next."""
 
     started: float = field(default_factory=time.monotonic)
+    ended: float = math.nan  # time.monotonic() when closed
     counts_at_start: dict[str, int] = field(default_factory=dict)
     messages_at_start: int = 0
     latencies_ns: list[np.ndarray] = field(default_factory=list)  # sample stamp -> estimate published
@@ -98,11 +105,14 @@ class DiagnosticsState:
             self.alarm_peak = event.value if math.isnan(self.alarm_peak) else max(self.alarm_peak, event.value)
         self.events.append(event.message)
 
-    def restart(self, counts: StreamCounts, messages: int) -> None:
-        contact = (self.radial_contact, self.axial_contact)
-        self.__init__()  # type: ignore[misc]
-        self.radial_contact, self.axial_contact = contact
-        self.counts_at_start, self.messages_at_start = counts.as_dict(), messages
+    def close(self, counts: StreamCounts, messages: int) -> DiagnosticsState:
+        """End this period now (`counts` and `messages` as they are now); returns the next period.
+
+        The closed state no longer changes: `statuses()` may read it in another thread.
+        """
+        self.ended = time.monotonic()
+        return DiagnosticsState(counts_at_start=counts.as_dict(), messages_at_start=messages,
+                                radial_contact=self.radial_contact, axial_contact=self.axial_contact)
 
 
 def statuses(
@@ -123,9 +133,9 @@ def statuses(
     hardware_id: str,
     scheduling: str = "normal",
 ) -> list[DiagnosticStatus]:
-    """The diagnostic statuses of one publication."""
-    now = time.monotonic()
-    elapsed = max(now - state.started, 1e-9)
+    """The diagnostic statuses of one publication: `state` is the period (closed, or still open)."""
+    end = time.monotonic() if math.isnan(state.ended) else state.ended
+    elapsed = max(end - state.started, 1e-9)
     total = counts.as_dict()
     delta = {k: v - state.counts_at_start.get(k, 0) for k, v in total.items()}
     out = []
