@@ -99,10 +99,14 @@ def detect_drop(z: np.ndarray, sample_period: float, threshold: float, window: f
 
 
 def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) -> Belief:
-    """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0."""
+    """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0.
+
+    numpy arrays (JAX takes them as they are): the live node builds one at each drop onset,
+    where three JAX dispatches cost ~0.8 ms.
+    """
     position = np.nanmean(etas[:samples], axis=0)
     mean = np.concatenate([position, [0.0, 0.0, 0.0, 0.0]])
-    return Belief(jnp.asarray(mean), jnp.diag(jnp.asarray(initial_cov)))
+    return Belief(mean, np.diag(np.asarray(initial_cov, dtype=np.float64)))
 
 
 def signals(model: Model, states: Belief) -> SignalSet:
