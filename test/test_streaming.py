@@ -13,14 +13,16 @@ import numpy as np
 import pytest
 
 from touchdown_ros.core.dynamics import rk4_step
-from touchdown_ros.core.estimate import detect_drop, make_estimator, to_grid
+from touchdown_ros.core.estimate import detect_drop, initial_belief, make_estimator, to_grid
 from touchdown_ros.core.streaming import (
     LEVITATED,
     TOUCHDOWN,
     WAITING,
     StreamingEstimator,
     StreamSettings,
+    chunk_buffer,
     estimate_stream,
+    flat_belief,
     make_chunk_filter,
 )
 from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
@@ -101,6 +103,24 @@ def batches(kind, n, seed=1):
     if kind == "whole_record":
         return None
     return list(np.random.default_rng(seed).integers(1, 300, size=n))
+
+
+def test_chunk_padding_rows_are_skipped(chunk_filter, record):
+    """A chunk of 32 holding 19 rows: the same 19 result rows and carried prior as a chunk of
+    exactly those rows (8 + 8 + 3 in chunks of 8), NaN rows after them."""
+    _, measured = record
+    etas = measured[250:269]
+    prior = flat_belief(initial_belief(etas, np.asarray(CONFIG.noise.initial)))
+    padded = np.asarray(chunk_filter(chunk_buffer(etas, 32, prior)))
+    rows, carried = [], prior
+    for start in range(0, 19, 8):
+        part = etas[start:start + 8]
+        result = np.asarray(chunk_filter(chunk_buffer(part, 8, carried)))
+        rows.append(result[: len(part)])
+        carried = result[8, : len(prior)]
+    np.testing.assert_allclose(padded[:19], np.concatenate(rows), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(padded[32, : len(prior)], carried, rtol=1e-12, atol=1e-300)
+    assert np.isnan(padded[19:32]).all()
 
 
 @pytest.mark.parametrize("kind", ["sample_by_sample", "random_batches", "whole_record"])
