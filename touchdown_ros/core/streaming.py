@@ -256,9 +256,9 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     signals of `estimate.signals` (acceleration and its covariance from the first RK4
     stage of the prediction, contact forces), innovation and NIS. Rows at and after the
     count are padding (the compiled shape never changes): skipped, their result rows are
-    NaN and the prior carried on is the one after the last real row. The results equal `make_estimator`'s
-    to round-off (the acceleration Jacobian comes from reverse- instead of forward-mode
-    differentiation). One compilation per C.
+    NaN and the prior carried on is the one after the last real row. The results equal
+    `make_estimator`'s to round-off (the acceleration Jacobian comes from reverse- instead
+    of forward-mode differentiation). One compilation per C.
 
     Everything stays inside the loop body (no LAPACK call: the 3 x 3 inverse is closed
     form) so that XLA's CPU backend compiles the whole loop into one function (the

@@ -266,7 +266,7 @@ class EstimatorNode(Node):
         self._stopping = False
         self.messages = self.batch_messages = self.malformed = self.internal_errors = 0
         self._summary = None
-        self._diagnostics = DiagnosticsState().close(self.estimator.counts, 0)
+        self._diagnostics = DiagnosticsState(counts_at_start=self.estimator.counts.as_dict())
         self._latency = LatencyHistogram()
         self._last_diagnostics = 0.0
         self._event_diagnostics_due = False
