@@ -20,7 +20,10 @@ output (/touchdown/estimate_batch), sensor.sample_period set to the input rate. 
 may choose the output (`...:cycle:batch`: per-sample input, batched output, which this
 process then subscribes to).
 
-Run: .venv/bin/python bench/node_throughput.py [--duration 60] [--quick]
+`--busy-loops N` runs N CPU-bound processes at normal priority beside every case (other
+load on the machine, e.g. to see what real-time priority protects the node from).
+
+Run: .venv/bin/python bench/node_throughput.py [--duration 60] [--cases ...] [--busy-loops N]
 Prints a markdown table (paste it into docs/node.md with the date).
 """
 from __future__ import annotations
@@ -358,6 +361,8 @@ def main() -> int:
     parser.add_argument("--publisher-priority", type=int, default=0, metavar="P",
                         help="run the publisher at SCHED_FIFO priority P, as the AMB controller it stands for "
                              "(with -p node.realtime_priority:=N, N < P); default 0: normal scheduling")
+    parser.add_argument("--busy-loops", type=int, default=0, metavar="N",
+                        help="N Python busy loops at normal priority beside every case: other load on the machine")
     parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL[:OUTPUT]]",
                         help="e.g. per_sample:events:10000 batched:events:100000:levitated "
                              "per_sample:events:10000:cycle:batch (per-sample input, batched output)")
@@ -374,16 +379,24 @@ def main() -> int:
         kind, executor, rate, *rest = spec.split(":")
         cases.append(Case(kind, executor, float(rate), *rest))
     results = []
-    for i, case in enumerate(cases):
-        print(f"running {case} for {args.duration:.0f} s ...", file=sys.stderr, flush=True)
-        result = run_case(case, args.duration, domain=60 + i, params=args.param,
-                          publisher_priority=args.publisher_priority)
-        print(f"  {result}", file=sys.stderr, flush=True)
-        results.append(result)
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy_loops)]
+    try:
+        for i, case in enumerate(cases):
+            print(f"running {case} for {args.duration:.0f} s ...", file=sys.stderr, flush=True)
+            result = run_case(case, args.duration, domain=60 + i, params=args.param,
+                              publisher_priority=args.publisher_priority)
+            print(f"  {result}", file=sys.stderr, flush=True)
+            results.append(result)
+    finally:
+        for loop in busy:
+            loop.kill()
+            loop.wait()
     load = os.getloadavg()[0]
     extra = f", node parameters {' '.join(args.param)}" if args.param else ""
     if args.publisher_priority:
         extra += f", publisher at SCHED_FIFO {args.publisher_priority}"
+    if args.busy_loops:
+        extra += f", {args.busy_loops} busy loop(s) at normal priority beside it"
     print(f"\nMeasured {time.strftime('%Y-%m-%d')} on {os.cpu_count()} cores (load average {load:.1f} at the end), "
           f"{args.duration:.0f} s per case{extra}.\n")
     print(table(results))
