@@ -115,29 +115,22 @@ def encode_fixed(layout: FixedLayout, stamps_ns: np.ndarray, values: np.ndarray)
     return [blob[i : i + size] for i in range(0, n * size, size)]
 
 
-def decode_fixed(data: bytes, count: int) -> tuple[int, tuple[float, ...]]:
-    """(stamp ns, count float64 values) of one serialized header + float64 message."""
+def decode_fixed(data: bytes, count: int, kind: str = "message") -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, count float64 values) of one serialized header + float64 message (`kind` names it in errors)."""
     if len(data) < 16:
-        raise MessageError(f"message of {len(data)} bytes is too short")
+        raise MessageError(f"{kind} of {len(data)} bytes is too short")
     order = "<" if data[1] & 1 else ">"
     sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)
     offset = 4 + _align(12 + length, 8)
     if offset + 8 * count > len(data):
-        raise MessageError(f"message of {len(data)} bytes is too short for {count} float64 values")
+        raise MessageError(f"{kind} of {len(data)} bytes is too short for {count} float64 values")
     return sec * NS_PER_S + nanosec, struct.unpack_from(f"{order}{count}d", data, offset)
 
 
 def decode_point(data: bytes) -> tuple[int, float, float, float]:
     """(stamp ns, x, y, z) of a serialized geometry_msgs/PointStamped."""
-    if len(data) < 16:
-        raise MessageError(f"PointStamped of {len(data)} bytes is too short")
-    order = "<" if data[1] & 1 else ">"
-    sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)
-    offset = 4 + _align(12 + length, 8)
-    if offset + 24 > len(data):
-        raise MessageError(f"PointStamped of {len(data)} bytes is too short")
-    x, y, z = struct.unpack_from(order + "3d", data, offset)
-    return sec * NS_PER_S + nanosec, x, y, z
+    stamp, (x, y, z) = decode_fixed(data, 3, "PointStamped")
+    return stamp, x, y, z
 
 
 def decode_points(data: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, list[MessageError]]:

@@ -375,7 +375,7 @@ class EstimatorNode(Node):
             self._refuse_message(error)
             return
         pending = self._inbox.add_block(stamps, xyz)
-        if pending >= self.config.node.flush_samples or self._reveals_drop(np.nanmin(xyz[:, 2], initial=np.inf)):
+        if pending >= self.config.node.flush_samples or self._reveals_drop(xyz[:, 2]):
             self._due()
 
     def _take_waiting(self) -> tuple[int, bool]:
@@ -390,12 +390,12 @@ class EstimatorNode(Node):
         if not len(stamps):
             return len(taken), False
         self._inbox.add_block(stamps, xyz)
-        return len(taken), self._reveals_drop(np.nanmin(xyz[:, 2], initial=np.inf))
+        return len(taken), self._reveals_drop(xyz[:, 2])
 
-    def _reveals_drop(self, lowest_z: float) -> bool:
-        """A sample this low (m) shows the rotor falling: estimate now, not at the next flush."""
+    def _reveals_drop(self, z: float | np.ndarray) -> bool:
+        """A sample this low (z, m; NaN ignored) shows the rotor falling: estimate now, not at the next flush."""
         level = self._drop_level
-        return level is not None and lowest_z < level
+        return level is not None and np.fmin.reduce(np.atleast_1d(z), initial=np.inf) < level
 
     def _wait_before_flush(self) -> float:
         """0 when the pending samples should be estimated now, else how long to wait for more, s."""
