@@ -149,7 +149,8 @@ def publisher_main(args: argparse.Namespace) -> int:
     late_ms = np.concatenate(late) / 1e6
     print(json.dumps({"sent": sent, "seconds": seconds, "cpu": time.process_time() - cpu0, "start_ns": start_ns,
                       "period_ns": period_ns, "cycle": len(cycle), "late_p50_ms": float(np.percentile(late_ms, 50)),
-                      "late_p99_ms": float(np.percentile(late_ms, 99))}), flush=True)
+                      "late_p99_ms": float(np.percentile(late_ms, 99)), "late_max_ms": float(late_ms.max()),
+                      "largest_burst": int(max(len(block) for block in late))}), flush=True)
     time.sleep(1.0)
     node.destroy_node()
     rclpy.shutdown()
@@ -162,7 +163,8 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_case(case: Case, duration: float, domain: int, params: list[str] = (), publisher_priority: int = 0) -> dict:
+def run_case(case: Case, duration: float, domain: int, params: list[str] = (), publisher_priority: int = 0,
+             stall: float = 0.0) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import WrenchStamped
@@ -258,6 +260,11 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = (), p
         spin_until(lambda: received() > 0 or publisher.poll() is not None, 120)
         cpu_start, wall_start, own_cpu_start = cpu_seconds(node.pid), time.monotonic(), time.process_time()
         worst_p99[:] = [0.0, 0.0]
+        if stall:  # the whole node process stopped for `stall` s halfway, as a VM or machine hiccup would
+            spin_until(lambda: publisher.poll() is not None, duration / 2)
+            os.kill(node.pid, signal.SIGSTOP)
+            time.sleep(stall)
+            os.kill(node.pid, signal.SIGCONT)
         spin_until(lambda: publisher.poll() is not None, duration + 120)
         cpu_node = cpu_seconds(node.pid) - cpu_start
         wall = time.monotonic() - wall_start
@@ -304,6 +311,8 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = (), p
             "publisher_cpu_pct": 100.0 * report["cpu"] / report["seconds"],
             "publisher_late_p50_ms": report["late_p50_ms"],
             "publisher_late_p99_ms": report["late_p99_ms"],
+            "publisher_late_max_ms": report["late_max_ms"],
+            "publisher_largest_burst": report["largest_burst"],  # most samples sent at one wake-up
         }
     finally:
         stop_sink.set()
@@ -361,6 +370,8 @@ def main() -> int:
     parser.add_argument("--publisher-priority", type=int, default=0, metavar="P",
                         help="run the publisher at SCHED_FIFO priority P, as the AMB controller it stands for "
                              "(with -p node.realtime_priority:=N, N < P); default 0: normal scheduling")
+    parser.add_argument("--stall", type=float, default=0.0, metavar="S",
+                        help="stop the node process (SIGSTOP) for S s halfway through each case, then continue it")
     parser.add_argument("--busy-loops", type=int, default=0, metavar="N",
                         help="N Python busy loops at normal priority beside every case: other load on the machine")
     parser.add_argument("--cases", nargs="*", metavar="KIND:EXECUTOR:RATE[:SIGNAL[:OUTPUT]]",
@@ -384,7 +395,7 @@ def main() -> int:
         for i, case in enumerate(cases):
             print(f"running {case} for {args.duration:.0f} s ...", file=sys.stderr, flush=True)
             result = run_case(case, args.duration, domain=60 + i, params=args.param,
-                              publisher_priority=args.publisher_priority)
+                              publisher_priority=args.publisher_priority, stall=args.stall)
             print(f"  {result}", file=sys.stderr, flush=True)
             results.append(result)
     finally:
@@ -397,6 +408,8 @@ def main() -> int:
         extra += f", publisher at SCHED_FIFO {args.publisher_priority}"
     if args.busy_loops:
         extra += f", {args.busy_loops} busy loop(s) at normal priority beside it"
+    if args.stall:
+        extra += f", node stopped for {args.stall:g} s halfway"
     print(f"\nMeasured {time.strftime('%Y-%m-%d')} on {os.cpu_count()} cores (load average {load:.1f} at the end), "
           f"{args.duration:.0f} s per case{extra}.\n")
     print(table(results))

@@ -64,3 +64,19 @@ def test_fingerprint_follows_the_model_not_the_topics(tmp_path):
     base = load_config()
     assert load_config(overrides={"topics.velocity": "/v"}).fingerprint() == base.fingerprint()
     assert load_config(overrides={"contact.k_Z": 1.0}).fingerprint() != base.fingerprint()
+
+
+def test_deep_shared_memory_profile_is_a_fast_dds_profile():
+    """config/fastdds_deep_shm.xml: well-formed XML (no '--' in its comments), the default
+    participant profile using a shared-memory transport deeper than Fast DDS's 512 messages."""
+    import xml.etree.ElementTree as ET
+
+    path = reference_rig_path().parent / "fastdds_deep_shm.xml"
+    ns = {"dds": "http://www.eprosima.com"}
+    root = ET.parse(path).getroot()
+    shm = [d for d in root.iterfind(".//dds:transport_descriptor", ns) if d.findtext("dds:type", namespaces=ns) == "SHM"]
+    assert len(shm) == 1 and int(shm[0].findtext("dds:port_queue_capacity", namespaces=ns)) > 512
+    participant = root.find(".//dds:participant", ns)
+    assert participant.get("is_default_profile") == "true"
+    used = [t.text for t in participant.iterfind(".//dds:userTransports/dds:transport_id", ns)]
+    assert shm[0].findtext("dds:transport_id", namespaces=ns) in used
