@@ -50,6 +50,15 @@ def _align(offset: int, to: int) -> int:
     return (offset + to - 1) // to * to
 
 
+def _values_offset(frame_length: int) -> int:
+    """Offset of the first float64 after a header whose frame_id takes `frame_length` bytes (with the NUL).
+
+    4 bytes of encapsulation, then stamp (sec, nanosec), string length and string, the
+    float64 aligned to 8 from the end of the encapsulation.
+    """
+    return 4 + _align(12 + frame_length, 8)
+
+
 @dataclass(frozen=True)
 class FixedLayout:
     """Byte layout of `<header with frame_id> + count float64` messages."""
@@ -60,14 +69,14 @@ class FixedLayout:
     @property
     def values_offset(self) -> int:
         """Offset of the first float64 from the start of the serialized bytes."""
-        return 4 + _align(12 + len(self.frame_id.encode()) + 1, 8)
+        return _values_offset(len(self.frame_id.encode()) + 1)
 
     @property
     def size(self) -> int:
         return self.values_offset + 8 * self.count
 
     def dtype(self) -> np.dtype:
-        return _dtype(self)
+        return _stamped_values(self.size, self.values_offset, self.count)
 
     def prefix(self) -> np.ndarray:
         """Encapsulation header, zero stamp and frame_id (uint8), the bytes every message starts with."""
@@ -84,10 +93,6 @@ def _record(size: int, **fields: tuple) -> np.dtype:
 def _stamped_values(size: int, values_offset: int, count: int) -> np.dtype:
     """Record of a `size`-byte header (stamp sec, nanosec) + `count` float64 message."""
     return _record(size, sec=("<i4", 4), nanosec=("<u4", 8), values=(("<f8", (count,)), values_offset))
-
-
-def _dtype(layout: FixedLayout) -> np.dtype:
-    return _stamped_values(layout.size, layout.values_offset, layout.count)
 
 
 @functools.lru_cache(maxsize=64)
@@ -121,7 +126,7 @@ def decode_fixed(data: bytes, count: int, kind: str = "message") -> tuple[int, t
         raise MessageError(f"{kind} of {len(data)} bytes is too short")
     order = "<" if data[1] & 1 else ">"
     sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)
-    offset = 4 + _align(12 + length, 8)
+    offset = _values_offset(length)
     if offset + 8 * count > len(data):
         raise MessageError(f"{kind} of {len(data)} bytes is too short for {count} float64 values")
     return sec * NS_PER_S + nanosec, struct.unpack_from(f"{order}{count}d", data, offset)
@@ -144,7 +149,7 @@ def decode_points(data: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, list[M
         joined = b"".join(data)
         header = np.frombuffer(joined, _record(size, flags=("u1", 1), frame_length=("<u4", 12)))
         frame_length = int(header["frame_length"][0])
-        offset = 4 + _align(12 + frame_length, 8)
+        offset = _values_offset(frame_length)
         if offset + 24 <= size and (header["flags"] & 1).all() and (header["frame_length"] == frame_length).all():
             point = np.frombuffer(joined, _stamped_values(size, offset, 3))
             return point["sec"].astype(np.int64) * NS_PER_S + point["nanosec"], point["values"].copy(), []
