@@ -21,9 +21,10 @@ may choose the output (`...:cycle:batch`: per-sample input, batched output, whic
 process then subscribes to).
 
 `--busy-loops N` runs N CPU-bound processes at normal priority beside every case (other
-load on the machine, e.g. to see what real-time priority protects the node from).
+load on the machine, e.g. to see what real-time priority protects the node from);
+`--stall S` stops the node process for S s halfway through each case (what a stall loses).
 
-Run: .venv/bin/python bench/node_throughput.py [--duration 60] [--cases ...] [--busy-loops N]
+Run: .venv/bin/python bench/node_throughput.py [--duration 60] [--cases ...] [--busy-loops N] [--stall S]
 Prints a markdown table (paste it into docs/node.md with the date).
 """
 from __future__ import annotations
