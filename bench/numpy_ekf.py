@@ -18,8 +18,8 @@ def numpy_model(model):
     T_R, T_Z = np.asarray(kernel.T_R), np.asarray(kernel.T_Z)
     a_R, a_Z = np.asarray(coeffs.alpha_R), np.asarray(coeffs.alpha_Z)
 
-    def q(deformation, velocity, T):
-        s = np.array([deformation / kernel.deformation_scale, velocity / kernel.velocity_scale])
+    def q(deformation, velocity, T, scale):
+        s = np.array([deformation / scale[0], velocity / scale[1]])
         return np.exp(-np.sum((s - T) ** 2, axis=1) / (2 * kernel.width**2))
 
     def phi(xi):
@@ -29,13 +29,13 @@ def numpy_model(model):
         rdot = c * xd + s * yd
         F_n = F_t = F_z = 0.0
         if r > rig.radial_clearance:
-            Q = q(r - rig.radial_clearance, rdot, T_R)
+            Q = q(r - rig.radial_clearance, rdot, T_R, np.asarray(kernel.scale_R))
             k_R, c_R, mu = (max(f0 * (1 + Q @ a), 0.0) for f0, a in zip((p.k_R, p.c_R, p.mu), a_R))
             F_n = k_R * (r - rig.radial_clearance) + c_R * rdot
             F_t = mu * F_n
             F_z = -mu * np.sign(zd) * F_n
         if z < -rig.axial_clearance:
-            Q = q(z + rig.axial_clearance, zd, T_Z)
+            Q = q(-(z + rig.axial_clearance), zd, T_Z, np.asarray(kernel.scale_Z))
             k_Z, c_Z, k_ZR = (max(f0 * (1 + Q @ a), 0.0) for f0, a in zip((p.k_Z, p.c_Z, p.k_ZR), a_Z))
             F_zZ = -k_Z * (z + rig.axial_clearance) - c_Z * zd
             F_t += k_ZR * F_zZ

@@ -60,10 +60,32 @@ def test_not_a_parameter_file(tmp_path):
         load_config(write(tmp_path, "a: [\n"))
 
 
-def test_fingerprint_follows_the_model_not_the_topics(tmp_path):
+def test_fingerprint_follows_the_rig_not_the_guesses(tmp_path):
+    """A coefficient file carries its own calibrated contact constants, kernel and noise: the
+    YAML's guesses of those do not tie it; the rotor and the sample period do."""
     base = load_config()
-    assert load_config(overrides={"topics.velocity": "/v"}).fingerprint() == base.fingerprint()
-    assert load_config(overrides={"contact.k_Z": 1.0}).fingerprint() != base.fingerprint()
+    for same in ({"topics.velocity": "/v"}, {"contact.k_Z": 1.0}, {"kernel.width": 2.0}, {"filter.measurement_noise": 1e-6}):
+        assert load_config(overrides=same).fingerprint() == base.fingerprint(), same
+    for other in ({"rig.mass": 200.0}, {"rig.radial_clearance": 0.3e-3}, {"sensor.sample_period": 2e-4}):
+        assert load_config(overrides=other).fingerprint() != base.fingerprint(), other
+
+
+def test_contact_law_and_training_settings(tmp_path):
+    assert load_config().law.label == "linear"
+    hertz = load_config(overrides={"contact.law": "hertz", "contact.exponent": 1.111})
+    assert (hertz.law.name, hertz.law.exponent, hertz.model().law) == ("hertz", 1.111, hertz.law)
+    assert load_config(overrides={"contact.law": "hertz"}).law.exponent == 1.5
+    with pytest.raises(ConfigError, match="contact.law"):
+        load_config(overrides={"contact.law": "spring"})
+    with pytest.raises(ConfigError, match="linear law has exponent 1"):
+        load_config(overrides={"contact.exponent": 1.5})
+    settings = load_config(overrides={"training.contact_laws": ["hertz:1.5", "linear"], "training.loss": "one_step"}).training
+    assert [law.label for law in settings.contact_laws] == ["hertz n=1.5", "linear"] and settings.loss == "one_step"
+    assert load_config(overrides={"training.contact_laws": []}).training.contact_laws == (load_config().law,)
+    with pytest.raises(ConfigError, match="training.contact_laws"):
+        load_config(overrides={"training.contact_laws": ["hertz:x"]})
+    with pytest.raises(ConfigError, match="training.loss"):
+        load_config(overrides={"training.loss": "mse"})
 
 
 def test_deep_shared_memory_profile_is_a_fast_dds_profile():

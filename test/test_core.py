@@ -107,7 +107,7 @@ def test_learned_parameters_at_one_state_match_a_hand_kernel():
     xi = np.array(CASES["radial"])
     r = math.hypot(xi[0], xi[1])
     rdot = (xi[0] * xi[3 + 1] + xi[1] * xi[5]) / r
-    s = np.array([(r - RIG.radial_clearance) / kernel.deformation_scale, rdot / kernel.velocity_scale])
+    s = np.array([(r - RIG.radial_clearance) / kernel.scale_R[0], rdot / kernel.scale_R[1]])
     q = math.exp(-np.sum((s - np.asarray(kernel.T_R[centre])) ** 2) / (2 * kernel.width**2))
     k_R = NOMINAL.k_R * (1 + 0.5 * q)
     expected_F_n = k_R * (r - RIG.radial_clearance) + NOMINAL.c_R * rdot
@@ -122,7 +122,7 @@ def test_axial_kernel_input_is_the_compression():
     assert np.allclose(kernel.T_Z[centre], [2.0, 0.0])
     coeffs = Coefficients.zeros(kernel)
     coeffs = coeffs._replace(alpha_Z=coeffs.alpha_Z.at[0, centre].set(0.5))
-    compression = 2.0 * kernel.deformation_scale
+    compression = 2.0 * kernel.scale_Z[0]
     xi = jnp.array([0.0, 0.0, -RIG.axial_clearance - compression, 0.0, 0.0, 0.0, 0.0])
     others = np.delete(np.asarray(kernel.T_Z), centre, axis=0)
     q_others = np.exp(-np.sum((others - np.array([2.0, 0.0])) ** 2, axis=1) / (2 * kernel.width**2))

@@ -187,16 +187,18 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
         written.append(_save(fig, out / figure))
 
     kernel, nominal = config.kernel, config.nominal
-    deformation = np.linspace(0, float(np.max(kernel.T_R[:, 0])) * kernel.deformation_scale, 60)
-    velocity = np.linspace(
-        float(np.min(kernel.T_R[:, 1])) * kernel.velocity_scale, float(np.max(kernel.T_R[:, 1])) * kernel.velocity_scale, 60
-    )
-    D, V = np.meshgrid(deformation, velocity, indexing="ij")
-    maps = list(zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D, V))) + list(
-        zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D, V))
-    )
+
+    def span(T, scale):
+        deformation = np.linspace(0.0, float(np.max(T[:, 0])) * scale[0], 60)
+        velocity = np.linspace(float(np.min(T[:, 1])) * scale[1], float(np.max(T[:, 1])) * scale[1], 60)
+        return np.meshgrid(deformation, velocity, indexing="ij")
+
+    D_R, V_R = span(np.asarray(kernel.T_R), np.asarray(kernel.scale_R))
+    D_Z, V_Z = span(np.asarray(kernel.T_Z), np.asarray(kernel.scale_Z))
+    maps = [(name, D_R, V_R, value) for name, value in zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D_R, V_R))]
+    maps += [(name, D_Z, V_Z, value) for name, value in zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D_Z, V_Z))]
     fig, axes = plt.subplots(2, 3, figsize=(12, 7))
-    for ax, (name, value) in zip(axes.ravel(), maps):
+    for ax, (name, D, V, value) in zip(axes.ravel(), maps):
         relative = np.asarray(value) / getattr(nominal, name)
         image = ax.pcolormesh(V, D * 1e6, relative, shading="auto", cmap="viridis")
         fig.colorbar(image, ax=ax, label=f"{name} / nominal")

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
-from touchdown_ros.core.types import THETA, XDOT, YDOT, ZDOT, ContactForces, Model
+from touchdown_ros.core.types import THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
 
 
 def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -25,6 +25,16 @@ def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
     cos_a = jnp.where(at_centre, 1.0, x / r)
     sin_a = jnp.where(at_centre, 0.0, y / r)
     return jnp.where(at_centre, 0.0, r), cos_a, sin_a
+
+
+def normal_force(law: ContactLaw, k: Array, c: Array, deformation: Array, rate: Array) -> Array:
+    """Normal contact force (N) at deformation d > 0 (m) and its rate (m/s), by the contact law:
+    k d + c d_dot (linear, eq. 6a / 8c) or d^n (k + c d_dot) floored at 0 (hertz); 0 out of contact."""
+    in_contact = deformation > 0.0
+    if law.name == "linear":
+        return jnp.where(in_contact, k * deformation + c * rate, 0.0)
+    d_n = jnp.where(in_contact, deformation, 1.0) ** law.exponent
+    return jnp.where(in_contact, jnp.maximum(d_n * (k + c * rate), 0.0), 0.0)
 
 
 def contact_forces(model: Model, xi: Array) -> ContactForces:
@@ -42,10 +52,10 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     k_R, c_R, mu = radial_parameters(model.kernel, model.nominal, model.coeffs, radial_deformation, rdot)
     k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, axial_deformation, zdot)
 
-    F_nR = jnp.where(radial_contact, k_R * radial_deformation + c_R * rdot, 0.0)  # eq. 6a
+    F_nR = normal_force(model.law, k_R, c_R, radial_deformation, rdot)  # eq. 6a
     F_tR = mu * F_nR  # eq. 6b
     F_zR = -mu * jnp.sign(zdot) * F_nR  # eq. 6c, friction opposing the axial sliding
-    F_zZ = jnp.where(axial_contact, -k_Z * (z + rig.axial_clearance) - c_Z * zdot, 0.0)  # eq. 8c
+    F_zZ = normal_force(model.law, k_Z, c_Z, axial_deformation, -zdot)  # eq. 8c: -k_Z (z + z0) - c_Z zdot
     F_tZ = k_ZR * F_zZ  # eq. 8b (F_nZ = 0, eq. 8a)
 
     F_n = F_nR

@@ -20,17 +20,17 @@ def gaussian_kernel(s: Array, T: Array, width: float) -> Array:
     return jnp.exp(-squared_distance / (2.0 * width**2))
 
 
-def normalise(kernel: Kernel, deformation: Array, velocity: Array) -> Array:
-    """rho or zeta of eq. 10 in the kernel's normalised units."""
-    return jnp.stack([deformation / kernel.deformation_scale, velocity / kernel.velocity_scale], axis=-1)
+def normalise(scale: Array, deformation: Array, velocity: Array) -> Array:
+    """rho or zeta of eq. 10 in normalised units: (deformation, velocity) / scale (m, m/s)."""
+    return jnp.stack([deformation / scale[0], velocity / scale[1]], axis=-1)
 
 
 def _learned(f0: Array, Q: Array, alpha: Array) -> Array:
     return jnp.maximum(f0 * (1.0 + Q @ alpha), 0.0)
 
 
-def _parameters(kernel: Kernel, T: Array, nominal: tuple, alpha: Array, deformation: Array, velocity: Array):
-    Q = gaussian_kernel(normalise(kernel, deformation, velocity), T, kernel.width)
+def _parameters(kernel: Kernel, T: Array, scale: Array, nominal: tuple, alpha: Array, deformation: Array, velocity: Array):
+    Q = gaussian_kernel(normalise(scale, deformation, velocity), T, kernel.width)
     return tuple(_learned(f0, Q, a) for f0, a in zip(nominal, alpha))
 
 
@@ -39,7 +39,7 @@ def radial_parameters(
 ) -> tuple[Array, Array, Array]:
     """k_R, c_R, mu at rho = (r - r0, rdot) (eq. 9a-c)."""
     f0 = (nominal.k_R, nominal.c_R, nominal.mu)
-    return _parameters(kernel, kernel.T_R, f0, coeffs.alpha_R, deformation, velocity)
+    return _parameters(kernel, kernel.T_R, kernel.scale_R, f0, coeffs.alpha_R, deformation, velocity)
 
 
 def axial_parameters(
@@ -47,7 +47,7 @@ def axial_parameters(
 ) -> tuple[Array, Array, Array]:
     """k_Z, c_Z, k_ZR at zeta (eq. 9d-f); deformation = -(z + z0), the compression, >= 0 in contact."""
     f0 = (nominal.k_Z, nominal.c_Z, nominal.k_ZR)
-    return _parameters(kernel, kernel.T_Z, f0, coeffs.alpha_Z, deformation, velocity)
+    return _parameters(kernel, kernel.T_Z, kernel.scale_Z, f0, coeffs.alpha_Z, deformation, velocity)
 
 
 def gram(kernel: Kernel) -> tuple[Array, Array]:

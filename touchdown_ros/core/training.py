@@ -1,11 +1,17 @@
-"""Training loss of eq. 18 over a batch of records, and its gradient by reverse-mode AD.
+"""Training losses over a batch of records, and their gradients by reverse-mode AD.
 
-loss(alpha) = sum over bags and valid samples of |eta_k - H xi_{k,-}|^2 / sigma^2, divided
-by the number of valid samples, + lambda * sum_k alpha_k^T K alpha_k.
+Two output errors, both from the one-step predictions of eq. 17b (the filtered
+estimate alone would follow the data whatever the model), per valid sample:
 
-The output error is the one-step prediction of eq. 17b (the filtered estimate alone
-would follow the data whatever the model), measured in units of the sensor noise so
-that lambda is dimensionless.
+- ``one_step`` (eq. 18 as published): |eta_k - H xi_{k,-}|^2 / sigma^2, the squared
+  prediction error in units of the sensor noise variance;
+- ``nll``: the innovation negative log-likelihood nu^T S^-1 nu + ln det(S R^-1), times 2
+  and without constants, with S = H P_{k,-} H^T + R from the filter: the same number as
+  ``one_step`` where S = R, but it weighs each sample by what the filter expects and
+  can also fit Q.
+
+loss(alpha) = output error summed over bags and valid samples, divided by the number of
+valid samples, + lambda * sum_k alpha_k^T K alpha_k (eq. 18).
 """
 from __future__ import annotations
 
@@ -62,42 +68,67 @@ def make_batch(
     )
 
 
-def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
-    """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample)."""
+LOSSES = ("one_step", "nll")
 
-    def one(etas: Array, mean: Array, cov: Array, gates: Array) -> Array:
+
+def innovations(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
+    """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample), and
+    (B, L, 3, 3) their covariances S_k, m^2."""
+
+    def one(etas: Array, mean: Array, cov: Array, gates: Array) -> tuple[Array, Array]:
         gated = model._replace(effects=model.effects.with_gates(gates))
-        return ekf(gated, noise, h, Belief(mean, cov), etas, checkpoint=True).innovation
+        out = ekf(gated, noise, h, Belief(mean, cov), etas, checkpoint=True)
+        return out.innovation, out.innovation_cov
 
     return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates)
 
 
-def squared_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
-    """Sum over valid samples of the squared one-step prediction errors, in noise variances."""
-    errors = prediction_errors(model, noise, h, batch)
-    return jnp.sum(jnp.where(batch.valid[..., None], errors**2 / noise.measurement, 0.0))
+def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
+    """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample)."""
+    return innovations(model, noise, h, batch)[0]
 
 
-def output_error(model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None) -> Array:
-    """Mean squared one-step prediction error over valid samples, in units of the noise variance.
+def sample_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str = "one_step") -> Array:
+    """(B, L) output error of each sample (module docstring), 0 where the sample is not valid."""
+    errors, S = innovations(model, noise, h, batch)
+    if kind == "one_step":
+        value = jnp.sum(errors**2 / noise.measurement, axis=-1)
+    elif kind == "nll":
+        safe = jnp.where(batch.valid[..., None], errors, 0.0)
+        mahalanobis = jnp.einsum("...i,...i->...", safe, jnp.linalg.solve(S, safe[..., None])[..., 0])
+        _, log_det = jnp.linalg.slogdet(S / jnp.sqrt(noise.measurement[:, None] * noise.measurement[None, :]))
+        value = mahalanobis + log_det
+    else:
+        raise ValueError(f"unknown loss {kind!r}: use one of {', '.join(LOSSES)}")
+    return jnp.where(batch.valid, value, 0.0)
+
+
+def squared_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str = "one_step") -> Array:
+    """Sum over valid samples of the output error (`sample_errors`)."""
+    return jnp.sum(sample_errors(model, noise, h, batch, kind))
+
+
+def output_error(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None, kind: str = "one_step"
+) -> Array:
+    """Mean output error over valid samples (`sample_errors`; one_step: in units of the noise variance).
 
     With a mesh (one axis, `RECORDS`), each device filters its share of the records in its
     own loop and the sums are added (the batch size must be a multiple of the mesh size:
     `pad_records`); the same number as without.
     """
     if mesh is None:
-        total = squared_errors(model, noise, h, batch)
+        total = squared_errors(model, noise, h, batch, kind)
     else:
 
-        def share(coeffs: Coefficients, effects: Effects, records: Batch) -> Array:
-            local = model._replace(coeffs=coeffs, effects=effects)
-            return jax.lax.psum(squared_errors(local, noise, h, records), RECORDS)
+        def share(local: Model, local_noise: FilterNoise, records: Batch) -> Array:
+            return jax.lax.psum(squared_errors(local, local_noise, h, records, kind), RECORDS)
 
         # check_vma off: the identity cotangents of dynamics.phi_and_jacobian are built
         # inside and carry no varying-axis type; nothing here is replicated across devices.
         total = jax.shard_map(
             share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=P(), check_vma=False
-        )(model.coeffs, jax.tree.map(jnp.asarray, model.effects), batch)
+        )(jax.tree.map(jnp.asarray, model), jax.tree.map(jnp.asarray, noise), batch)
     return total / jnp.sum(batch.valid)
 
 
@@ -124,9 +155,10 @@ def loss(
     lam: float,
     effects: Effects | None = None,
     mesh: Mesh | None = None,
+    kind: str = "one_step",
 ) -> Array:
-    """Eq. 18 with the output error normalised as in output_error; `effects` (with their
+    """Eq. 18 with the output error `kind` normalised as in output_error; `effects` (with their
     physical parameters, not penalised) replace the model's when given; `mesh` spreads the
     records over devices (`output_error`)."""
     trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
-    return output_error(trained, noise, h, batch, mesh) + lam * rkhs_distance(model.kernel, coeffs)
+    return output_error(trained, noise, h, batch, mesh, kind) + lam * rkhs_distance(model.kernel, coeffs)

@@ -1,8 +1,10 @@
 """Typed containers of the estimator's model; all are JAX pytrees (NamedTuples), SI units."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -40,20 +42,50 @@ class Nominal(NamedTuple):
     k_ZR: float  # tangential force per axial contact force, 1
 
 
+@jax.tree_util.register_static
+@dataclass(frozen=True)
+class ContactLaw:
+    """Normal-force law of the contacts (a static choice: changing it recompiles).
+
+    linear: F = k d + c d_dot (paper eq. 6a, 8c; k in N/m, c in N s/m).
+    hertz: F = d^n (k + c d_dot), floored at 0 (Hertz with Hunt-Crossley damping; k in
+    N/m^n, c in N s/m^(n+1)); n = 1.5 for balls, 10/9 for rollers.
+    """
+
+    name: str = "linear"
+    exponent: float = 1.0
+
+    def __post_init__(self):
+        if self.name not in CONTACT_LAWS:
+            raise ValueError(f"contact law must be one of {', '.join(CONTACT_LAWS)}, got {self.name!r}")
+        if self.name == "linear" and self.exponent != 1.0:
+            raise ValueError("the linear contact law has exponent 1")
+        if not 1.0 <= self.exponent <= 3.0:
+            raise ValueError(f"contact exponent must be in [1, 3], got {self.exponent!r}")
+
+    @property
+    def label(self) -> str:
+        """'linear' or 'hertz n=1.5'."""
+        return self.name if self.name == "linear" else f"{self.name} n={self.exponent:.4g}"
+
+
+CONTACT_LAWS = ("linear", "hertz")
+
+
 class Kernel(NamedTuple):
     """PKBKR kernel: Gaussian Q on normalised rho = (r - r0, rdot) and zeta = (-(z + z0), zdot).
 
     zeta's first component is the axial compression -(z + z0) (the paper's z + z0 with
     its sign turned), so both deformations are >= 0 in contact and both centre grids
     read as deformation >= 0. Centres are in the normalised coordinates of the kernel
-    inputs: deformation / deformation_scale and velocity / velocity_scale.
+    inputs: (deformation, velocity) / scale, with one scale per centre set.
     """
 
-    T_R: Array  # (m_R, 2) radial centre set
-    T_Z: Array  # (m_Z, 2) axial centre set
+    T_R: Array  # (m_R, 2) radial centre set, normalised
+    T_Z: Array  # (m_Z, 2) axial centre set, normalised
     width: float  # Gaussian width sigma in normalised units
-    deformation_scale: float  # m
-    velocity_scale: float  # m/s
+    scale_R: Array  # (2,) m, m/s per normalised unit of rho
+    scale_Z: Array  # (2,) m, m/s per normalised unit of zeta
 
 
 class Coefficients(NamedTuple):
@@ -79,6 +111,7 @@ class Model(NamedTuple):
     kernel: Kernel
     coeffs: Coefficients
     effects: Effects = Effects()  # add-on force terms (core.effects); none: the paper's model
+    law: ContactLaw = ContactLaw()  # normal-force law; default: the paper's linear spring-damper
 
 
 class FilterNoise(NamedTuple):

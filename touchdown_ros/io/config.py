@@ -10,7 +10,7 @@ import hashlib
 import json
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -19,7 +19,7 @@ import yaml
 
 from touchdown_ros.core import effects as effects_library
 from touchdown_ros.core.effects import Effects
-from touchdown_ros.core.types import Coefficients, FilterNoise, Kernel, Model, Nominal, Rig
+from touchdown_ros.core.types import CONTACT_LAWS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
 
@@ -39,6 +39,25 @@ class Topics:
     truth_acceleration: str = "/truth/acceleration"
     truth_contact_force: str = "/truth/contact_force"
     frame_id: str = "amb_sensor"
+
+
+LOSSES = ("nll", "one_step")
+PLACEMENTS = ("data", "fixed")
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """`training.*`: how `touchdown train` identifies a rig (stage 1) and fits PKBKR (stage 2)."""
+
+    loss: str = "nll"  # nll: innovation negative log-likelihood; one_step: eq. 18 as published
+    # stage-1 candidate contact laws ("linear", "hertz:<n>"); the data choose; empty: contact.law only
+    contact_laws: tuple[ContactLaw, ...] = ()
+    prior_width: float = 1.6  # sd of ln f0 around the guess (ln 5: a guess 5x off is one sd)
+    reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
+    placement: str = "data"  # kernel centres: data (from the calibrated estimates) | fixed (kernel.* grid)
+    calibration_steps: int = 200  # cap on stage-1 L-BFGS iterations (it stops at convergence first)
+    pkbkr_steps: int = 200  # cap on stage-2 L-BFGS iterations
+    tolerance: float = 1.0e-6  # relative loss change, and gradient norm, that count as converged
 
 
 @dataclass(frozen=True)
@@ -103,6 +122,8 @@ class Config:
     regularisation: float  # lambda
     topics: Topics
     training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
+    law: ContactLaw = field(default_factory=ContactLaw)  # contact.law / contact.exponent
+    training: TrainingSettings = field(default_factory=TrainingSettings)
     simulator: Mapping[str, Any] = field(default_factory=dict)
     source: str = "<built-in>"
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
@@ -118,6 +139,7 @@ class Config:
             self.kernel,
             coeffs or Coefficients.zeros(self.kernel),
             self.effects if effects is None else effects,
+            self.law,
         )
 
     def training_noise(self) -> FilterNoise:
@@ -125,22 +147,18 @@ class Config:
         return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
 
     def fingerprint(self) -> str:
-        """SHA-256 of what a coefficient file depends on: rig, nominal values and kernel."""
+        """SHA-256 of the rig a coefficient file is valid for (`model_identity`)."""
         return hashlib.sha256(json.dumps(self.model_identity(), sort_keys=True).encode()).hexdigest()
 
     def model_identity(self) -> dict[str, Any]:
-        """The values a set of coefficients is only valid for, as plain JSON-able data."""
-        return {
-            "rig": dict(self.rig._asdict()),
-            "contact": dict(self.nominal._asdict()),
-            "kernel": {
-                "width": self.kernel.width,
-                "deformation_scale": self.kernel.deformation_scale,
-                "velocity_scale": self.kernel.velocity_scale,
-                "T_R": np.asarray(self.kernel.T_R).tolist(),
-                "T_Z": np.asarray(self.kernel.T_Z).tolist(),
-            },
-        }
+        """The rig values a coefficient file is only valid for, as plain JSON-able data: the
+        rotor and the sample period. The contact law, its constants, the kernel and the filter
+        noise are what the file itself carries (calibrated), not the YAML's guesses."""
+        return {"rig": dict(self.rig._asdict()), "sample_period": self.sample_period}
+
+    def calibrated(self, nominal: Nominal, law: ContactLaw, kernel: Kernel, noise: FilterNoise) -> "Config":
+        """This rig with identified contact constants, law, kernel and filter noise (a coefficient file's)."""
+        return replace(self, nominal=nominal, law=law, kernel=kernel, noise=noise)
 
 
 def reference_rig_path() -> Path:
@@ -288,12 +306,14 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         gravity=read.number("rig.gravity", 9.80665, non_negative=True),
     )
     nominal = Nominal(*(read.number(f"contact.{name}", non_negative=True) for name in Nominal._fields))
+    law = _contact_law(read)
+    scale = np.array([read.number("kernel.deformation_scale", positive=True), read.number("kernel.velocity_scale", positive=True)])
     kernel = Kernel(
         T_R=_grid(read.numbers("kernel.radial_deformation_centres"), read.numbers("kernel.radial_velocity_centres")),
         T_Z=_grid(read.numbers("kernel.axial_deformation_centres"), read.numbers("kernel.axial_velocity_centres")),
         width=read.number("kernel.width", positive=True),
-        deformation_scale=read.number("kernel.deformation_scale", positive=True),
-        velocity_scale=read.number("kernel.velocity_scale", positive=True),
+        scale_R=scale,
+        scale_Z=scale.copy(),
     )
     measurement_sigma = read.number("filter.measurement_noise", positive=True)
     noise = FilterNoise(
@@ -315,6 +335,8 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         ),
         regularisation=read.number("training.regularisation", 1e-3, non_negative=True),
         training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
+        law=law,
+        training=_training_settings(read, law),
         topics=Topics(**{name: read.text(f"topics.{name}", default) for name, default in Topics().__dict__.items()}),
         simulator={k.removeprefix("simulator."): v for k, v in flat.items() if k.startswith("simulator.")},
         source=source,
@@ -328,6 +350,54 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         hints = "".join(f"; {name}: {RENAMED[name]}" for name in unknown if name in RENAMED)
         raise ConfigError(f"{source}: unknown parameter(s): {', '.join(unknown)}{hints}")
     return config
+
+
+def parse_contact_law(text: str) -> ContactLaw:
+    """'linear', 'hertz' (n = 1.5) or 'hertz:<n>' -> ContactLaw; ValueError names what is wrong."""
+    name, _, exponent = str(text).partition(":")
+    if name not in CONTACT_LAWS:
+        raise ValueError(f"contact law {text!r}: use one of linear, hertz, hertz:<exponent>")
+    if name == "linear":
+        if exponent:
+            raise ValueError(f"contact law {text!r}: the linear law takes no exponent")
+        return ContactLaw()
+    try:
+        n = float(exponent) if exponent else 1.5
+    except ValueError:
+        raise ValueError(f"contact law {text!r}: the exponent must be a number") from None
+    return ContactLaw("hertz", n)
+
+
+def _contact_law(read: _Reader) -> ContactLaw:
+    """contact.law (linear | hertz) and contact.exponent (hertz only, default 1.5)."""
+    name = read.choice("contact.law", "linear", CONTACT_LAWS)
+    exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
+    try:
+        return ContactLaw(name, exponent)
+    except ValueError as error:
+        raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
+
+
+def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
+    """The `training.*` keys of the two-stage identification (defaults of TrainingSettings)."""
+    d = TrainingSettings()
+    laws = read._get("training.contact_laws", ["linear", "hertz:1.5", "hertz:1.111"])
+    if not isinstance(laws, list) or not all(isinstance(v, str) for v in laws):
+        raise ConfigError(f"{read.source}: parameter 'training.contact_laws' must be a list such as [linear, hertz:1.5]")
+    try:
+        candidates = tuple(dict.fromkeys(parse_contact_law(v) for v in laws))
+    except ValueError as error:
+        raise ConfigError(f"{read.source}: training.contact_laws: {error}") from None
+    return TrainingSettings(
+        loss=read.choice("training.loss", d.loss, LOSSES),
+        contact_laws=candidates or (law,),
+        prior_width=read.number("training.prior_width", d.prior_width, positive=True),
+        reference_deformation=read.number("training.reference_deformation", d.reference_deformation, positive=True),
+        placement=read.choice("kernel.placement", d.placement, PLACEMENTS),
+        calibration_steps=read.integer("training.calibration_steps", d.calibration_steps),
+        pkbkr_steps=read.integer("training.pkbkr_steps", d.pkbkr_steps, minimum=0),
+        tolerance=read.number("training.tolerance", d.tolerance, positive=True),
+    )
 
 
 def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
