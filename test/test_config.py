@@ -77,7 +77,7 @@ def test_contact_law_and_training_settings(tmp_path):
     assert load_config(overrides={"contact.law": "hertz"}).law.exponent == 1.5
     with pytest.raises(ConfigError, match="contact.law"):
         load_config(overrides={"contact.law": "spring"})
-    with pytest.raises(ConfigError, match="linear law has exponent 1"):
+    with pytest.raises(ConfigError, match="linear contact law has exponent 1"):
         load_config(overrides={"contact.exponent": 1.5})
     settings = load_config(overrides={"training.contact_laws": ["hertz:1.5", "linear"], "training.loss": "one_step"}).training
     assert [law.label for law in settings.contact_laws] == ["hertz n=1.5", "linear"] and settings.loss == "one_step"
