@@ -84,7 +84,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         from touchdown_ros.io.coefficients import load_coefficients
 
         loaded = load_coefficients(args.coeffs, config)
-        coeffs, effects = loaded.coeffs, loaded.effects
+        coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
     estimator = estimator_for(config, coeffs, effects)
     args.out.mkdir(parents=True, exist_ok=True)
     targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
@@ -109,7 +109,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     config = _config(args)
     if args.out.exists() and not (args.overwrite or args.resume):
         raise FileExistsError(f"{args.out} exists; pass --overwrite to replace it or --resume to continue")
-    result = train(
+    outcome = train(
         config,
         args.bags,
         args.out,
@@ -119,10 +119,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         max_steps=args.steps,
         duration=args.duration,
     )
+    calibration, pkbkr = outcome.calibration, outcome.pkbkr
+    if calibration is not None:
+        nominal = outcome.config.nominal
+        print(
+            f"stage 1 ({'converged' if calibration.convergence.converged else 'NOT converged'}, "
+            f"{calibration.convergence.steps} steps): {outcome.config.law.label}, "
+            + ", ".join(f"{k} {v:.4g} (+-{100 * calibration.relative_sd[k]:.0f} %)" for k, v in nominal._asdict().items())
+            + (f"; held by the prior: {', '.join(calibration.held_by_prior)}" if calibration.held_by_prior else "")
+        )
+    converged = pkbkr.convergence is not None and pkbkr.convergence.converged
     print(
-        f"trained on {len(args.bags)} bag(s) in {result.seconds:.1f} s: loss {result.initial_loss:.6g} -> "
-        f"{result.final_loss:.6g} after {result.steps} steps; wrote {args.out}"
+        f"stage 2 ({'converged' if converged else 'NOT converged'}, {pkbkr.steps} steps): loss "
+        f"{pkbkr.initial_loss:.6g} -> {pkbkr.final_loss:.6g}; mean NIS per bag "
+        f"{min(outcome.mean_nis):.2f}-{max(outcome.mean_nis):.2f} (3 when consistent)"
     )
+    print(f"trained on {len(args.bags)} bag(s) in {outcome.seconds:.1f} s; wrote {args.out}")
     return 0
 
 
@@ -134,6 +146,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     config = _config(args)
     full = load_coefficients(args.coeffs, config)
+    config = full.config(config)
     lam = full.training.regularisation
     trained = Trainable(full.coeffs, full.effects)
     if args.no_cv:
@@ -252,7 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda", dest="regularisation", type=float, help="eq. 18 lambda (default: training.regularisation)")
     p.add_argument("--init", type=Path, help="warm-start from this coefficient file")
     p.add_argument("--resume", action="store_true", help="continue from OUT.checkpoint of an interrupted run")
-    p.add_argument("--steps", type=int, default=40, help="L-BFGS iterations (default 40)")
+    p.add_argument(
+        "--steps", type=int, default=None,
+        help="cap on stage-2 (PKBKR) L-BFGS iterations; it stops at convergence first (default training.pkbkr_steps)",
+    )
     p.add_argument("--duration", type=float, help="use only this many seconds after each drop")
     p.add_argument("--overwrite", action="store_true", help="replace an existing coefficient file")
     p.set_defaults(run=cmd_train)
@@ -290,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config(p)
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=40, help="training L-BFGS steps")
+    p.add_argument("--steps", type=int, default=None, help="cap on stage-2 training steps (default training.pkbkr_steps)")
     p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per leave-one-out fold")
     p.add_argument("--quick", action="store_true", help="only simulate and estimate experiment 11 (constant model)")
     p.add_argument(

@@ -362,7 +362,7 @@ def diagnose(
         from touchdown_ros.io.coefficients import load_coefficients
 
         loaded = load_coefficients(coefficient_file, config)
-        coeffs, effects = loaded.coeffs, loaded.effects
+        coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
     estimator = estimator_for(config, coeffs, effects)
     compiled = _compiled(config, settings)
     results = []

@@ -15,10 +15,10 @@ import yaml
 from touchdown_ros import __version__
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.effects import resolve as resolve_effect
-from touchdown_ros.core.types import AXIAL_PARAMETERS, RADIAL_PARAMETERS, Coefficients, Model
+from touchdown_ros.core.types import AXIAL_PARAMETERS, RADIAL_PARAMETERS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal
 from touchdown_ros.io.config import Config
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: the file carries its calibrated contact law and constants, kernel and filter noise
 KIND = "touchdown_ros/pkbkr_coefficients"
 
 
@@ -44,9 +44,15 @@ class CoefficientFile:
     document: Mapping[str, Any]
     effects: Effects = Effects()  # the add-on effects the coefficients were fitted with
 
+    calibrated: Config | None = None  # the rig with the file's contact law, f0, kernel and noise
+
+    def config(self, config: Config) -> Config:
+        """The rig as this file calibrated it (contact law and constants, kernel, filter noise)."""
+        return self.calibrated if self.calibrated is not None else config
+
     def model(self, config: Config) -> Model:
-        """The estimator's model with these coefficients and effects."""
-        return config.model(self.coeffs, self.effects)
+        """The estimator's model with the file's calibration, coefficients and effects."""
+        return self.config(config).model(self.coeffs, self.effects)
 
 
 def sha256_of(path: str | Path) -> str:
@@ -76,6 +82,24 @@ def save_coefficients(
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "rig_fingerprint": config.fingerprint(),
         "model": config.model_identity(),
+        "contact": {
+            "law": config.law.name,
+            "exponent": float(config.law.exponent),
+            "units": _contact_units(config),
+            **{name: float(value) for name, value in config.nominal._asdict().items()},
+        },
+        "kernel": {
+            "width": float(config.kernel.width),
+            "scale_R": np.asarray(config.kernel.scale_R, dtype=float).tolist(),
+            "scale_Z": np.asarray(config.kernel.scale_Z, dtype=float).tolist(),
+            "T_R": np.asarray(config.kernel.T_R, dtype=float).tolist(),
+            "T_Z": np.asarray(config.kernel.T_Z, dtype=float).tolist(),
+        },
+        "filter": {
+            "process_noise": np.asarray(config.noise.process, dtype=float).tolist(),
+            "measurement_noise": np.sqrt(np.asarray(config.noise.measurement, dtype=float)).tolist(),
+            "initial_covariance": np.asarray(config.noise.initial, dtype=float).tolist(),
+        },
         "coefficients": {
             "units": "dimensionless, relative to each nominal value: p(s) = f0 * (1 + Q(s, T) alpha)",
             **{name: alpha_R[i].tolist() for i, name in enumerate(RADIAL_PARAMETERS)},
@@ -103,6 +127,9 @@ def save_coefficients(
             stream.write(text)
             stream.flush()
             os.fsync(stream.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # as open() would create it (mkstemp makes it 0600)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -130,8 +157,10 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         raise CoefficientFileError(
             f"{path}: made for another rig than {config.source}; differs in: " + "; ".join(differences[:8])
         )
+    calibrated = _calibrated_config(path, document, config)
     table = document.get("coefficients")
-    sizes = {**{name: len(config.kernel.T_R) for name in RADIAL_PARAMETERS}, **{name: len(config.kernel.T_Z) for name in AXIAL_PARAMETERS}}
+    kernel = calibrated.kernel
+    sizes = {**{name: len(kernel.T_R) for name in RADIAL_PARAMETERS}, **{name: len(kernel.T_Z) for name in AXIAL_PARAMETERS}}
     rows = {}
     for name, size in sizes.items():
         value = table.get(name) if isinstance(table, dict) else None
@@ -152,7 +181,63 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         steps=training.get("steps", 0),
         extra={k: v for k, v in training.items() if k not in ("bags", "regularisation", "final_loss", "steps")},
     )
-    return CoefficientFile(Coefficients(alpha_R, alpha_Z), record, document, _load_effects(path, document.get("effects")))
+    return CoefficientFile(
+        Coefficients(alpha_R, alpha_Z), record, document, _load_effects(path, document.get("effects")), calibrated
+    )
+
+
+def _contact_units(config: Config) -> str:
+    if config.law.name == "linear":
+        return "F = k d + c d_dot: k_R, k_Z N/m; c_R, c_Z N s/m; mu, k_ZR 1"
+    n = f"{config.law.exponent:.4g}"
+    return f"F = d^{n} (k + c d_dot): k_R, k_Z N/m^{n}; c_R, c_Z N s/m^({n}+1); mu, k_ZR 1"
+
+
+def _array(path: Path, document: Mapping[str, Any], key: str, shape: tuple[int | None, ...], positive: bool = False) -> np.ndarray:
+    section, _, name = key.partition(".")
+    value = (document.get(section) or {}).get(name) if isinstance(document.get(section), dict) else None
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        array = np.empty(0)
+    fits = array.ndim == len(shape) and all(want is None or got == want for got, want in zip(array.shape, shape))
+    if not fits or array.size == 0 or not np.isfinite(array).all() or (positive and (array <= 0).any()):
+        what = "positive " if positive else ""
+        raise CoefficientFileError(f"{path}: {key} must be {what}finite numbers of shape {tuple('n' if s is None else s for s in shape)}")
+    return array
+
+
+def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) -> Config:
+    """The rig with the file's contact law and constants, kernel and filter noise."""
+    contact = document.get("contact")
+    if not isinstance(contact, dict):
+        raise CoefficientFileError(f"{path}: no 'contact' section (law and calibrated constants)")
+    try:
+        law = ContactLaw(str(contact.get("law")), float(contact.get("exponent", 1.0)))
+    except (TypeError, ValueError) as error:
+        raise CoefficientFileError(f"{path}: contact.law / contact.exponent: {error}") from None
+    values = []
+    for name in Nominal._fields:
+        value = contact.get(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise CoefficientFileError(f"{path}: contact.{name} must be a finite number >= 0")
+        values.append(float(value))
+    width = (document.get("kernel") or {}).get("width") if isinstance(document.get("kernel"), dict) else None
+    if isinstance(width, bool) or not isinstance(width, (int, float)) or not width > 0:
+        raise CoefficientFileError(f"{path}: kernel.width must be a number > 0")
+    kernel = Kernel(
+        T_R=_array(path, document, "kernel.T_R", (None, 2)),
+        T_Z=_array(path, document, "kernel.T_Z", (None, 2)),
+        width=float(width),
+        scale_R=_array(path, document, "kernel.scale_R", (2,), positive=True),
+        scale_Z=_array(path, document, "kernel.scale_Z", (2,), positive=True),
+    )
+    noise = FilterNoise(
+        process=_array(path, document, "filter.process_noise", (7,)),
+        measurement=_array(path, document, "filter.measurement_noise", (3,), positive=True) ** 2,
+        initial=_array(path, document, "filter.initial_covariance", (7,)),
+    )
+    return config.calibrated(Nominal(*values), law, kernel, noise)
 
 
 def _load_effects(path: Path, table: Any) -> Effects:

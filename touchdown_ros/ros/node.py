@@ -345,11 +345,12 @@ class EstimatorNode(Node):
             return ModelInfo(ERROR, f"coefficient file refused, running the constant model: {error}",
                              {"model": "constant (fallback)", "coefficients": path, "error": str(error),
                               **identity}), self.config.model()
+        self.config = loaded.config(self.config)  # the file's calibrated law, constants, kernel and noise
         info = ModelInfo(
             OK,
             f"PKBKR coefficients from {path}",
             {"model": "pkbkr", "coefficients": path, "coefficients_sha256": sha256_of(path)[:16],
-             "trained_on_bags": len(loaded.training.bags), **identity},
+             "trained_on_bags": len(loaded.training.bags), "contact_law": self.config.law.label, **identity},
         )
         return info, loaded.model(self.config)
 

@@ -1,0 +1,238 @@
+"""Stage 1 of identification: the nominal contact law and its constants f0 from displacements.
+
+The six constants (k_R, c_R, mu, k_Z, c_Z, k_ZR: positive) are fitted on a log scale,
+together with two factors on the process noise Q (radial and axial block, `nll` loss only)
+and the active effects' parameters, by minimising
+
+    J = [sum over samples of the output error (core.training)
+         + sum_i ((ln f0_i - ln guess_i) / prior_width)^2 + sum_j (ln q_j / Q_PRIOR_WIDTH)^2] / N
+
+that is, with the `nll` loss, twice the negative log-posterior per sample under a
+log-normal prior around the rig YAML's guess. The prior holds what the data cannot
+tell (damping, friction) near the guess instead of letting it wander; where the data
+speak (stiffness) it is negligible. Standard errors come from the curvature of J.
+
+Also here: the sensor noise from the levitated samples, carrying a guess from one
+contact law to another, and kernel centres placed where the data are.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from touchdown_ros.core.dynamics import polar
+from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.ekf import Belief, ekf
+from touchdown_ros.core.training import Batch, output_error
+from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Kernel, Model, Nominal
+
+#: Which Q entries each noise factor scales: radial (x, y, xdot, ydot) and axial (z, zdot); theta stays.
+Q_BLOCKS = ((0, 1, 4, 5), (2, 6))
+Q_NAMES = ("q_radial", "q_axial")
+#: Prior width of ln q: the YAML's Q is a rough guess (e^3 = 20x either way is one sd).
+Q_PRIOR_WIDTH = 3.0
+#: Parameters whose posterior sd is at least this share of the prior sd are "held by the prior".
+HELD_BY_PRIOR = 0.5
+#: Stiffness and damping of the normal force, by position in `PARAMETER_NAMES`.
+_STIFFNESS, _DAMPING = (0, 3), (1, 4)
+
+
+class Stage1(NamedTuple):
+    """What stage 1 fits, in the optimiser's coordinates."""
+
+    log_f0: Array  # (6,) ln of k_R, c_R, mu, k_Z, c_Z, k_ZR in the law's units
+    log_q: Array  # (2,) ln of the factors on Q's radial and axial blocks
+    effects: Effects  # active effects, parameters divided by their scales
+
+
+def q_factors(log_q: Array) -> Array:
+    """(7,) factors on the diagonal of Q from the two block factors."""
+    factors = jnp.ones(7, dtype=log_q.dtype)
+    for j, block in enumerate(Q_BLOCKS):
+        factors = factors.at[jnp.asarray(block)].set(jnp.exp(log_q[j]))
+    return factors
+
+
+def nominal_of(log_f0: Array) -> Nominal:
+    return Nominal(*(jnp.exp(log_f0[i]) for i in range(len(PARAMETER_NAMES))))
+
+
+def log_nominal(nominal: Nominal) -> np.ndarray:
+    values = np.asarray([float(v) for v in nominal], dtype=float)
+    if np.any(values <= 0.0):
+        zero = [n for n, v in zip(PARAMETER_NAMES, values) if v <= 0.0]
+        raise ValueError(f"contact guess {', '.join(zero)} must be > 0 to be calibrated on a log scale")
+    return np.log(values)
+
+
+def effect_scales(effects: Effects) -> Effects:
+    """Each effect parameter's magnitude (its starting value, at least 1e-6): the optimiser works
+    on parameter / scale so that a load in N and a ratio share one step length."""
+    return Effects(effects.effects, tuple({k: max(abs(float(v)), 1e-6) for k, v in p.items()} for p in effects.params))
+
+
+def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Effects:
+    """Scaled parameters -> physical (or back with inverse=True)."""
+    combine = (lambda v, s: v / s) if inverse else (lambda v, s: v * s)
+    return Effects(
+        scaled.effects,
+        tuple({k: combine(v, s[k]) for k, v in p.items()} for p, s in zip(scaled.params, scales.params)),
+        scaled.gates,
+    )
+
+
+def stage1_model_and_noise(
+    theta: Stage1, base: Model, noise: FilterNoise, scales: Effects
+) -> tuple[Model, FilterNoise]:
+    """The model (constant parameters, alpha = 0) and filter noise at stage-1 coordinates theta."""
+    model = base._replace(
+        nominal=nominal_of(theta.log_f0),
+        coeffs=base.coeffs._replace(alpha_R=jnp.zeros_like(base.coeffs.alpha_R), alpha_Z=jnp.zeros_like(base.coeffs.alpha_Z)),
+        effects=apply_scales(theta.effects, scales),
+    )
+    return model, noise._replace(process=noise.process * q_factors(theta.log_q))
+
+
+def stage1_objective(
+    theta: Stage1,
+    guess_log_f0: Array,
+    prior_width: float,
+    base: Model,
+    noise: FilterNoise,
+    scales: Effects,
+    h: float,
+    batch: Batch,
+    kind: str,
+    mesh=None,
+) -> Array:
+    """J of the module docstring at theta (per valid sample)."""
+    model, fitted_noise = stage1_model_and_noise(theta, base, noise, scales)
+    data = output_error(model, fitted_noise, h, batch, mesh, kind)
+    prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
+    return data + prior / jnp.sum(batch.valid)
+
+
+def _damping_exponent(law: ContactLaw) -> float:
+    """Power of the deformation in the damping force: c d_dot (linear) or c d^n d_dot (hertz)."""
+    return 0.0 if law.name == "linear" else law.exponent
+
+
+def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
+    """A guess of one contact law carried to another: the same spring force and the same damping
+    force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the
+    power of d in the damping force (0 linear, n hertz)."""
+    d = reference_deformation
+    stiffness = d ** (source.exponent - target.exponent)
+    damping = d ** (_damping_exponent(source) - _damping_exponent(target))
+    values = list(nominal)
+    for i in _STIFFNESS:
+        values[i] = values[i] * stiffness
+    for i in _DAMPING:
+        values[i] = values[i] * damping
+    return Nominal(*values)
+
+
+def sensor_noise(levitated: np.ndarray) -> np.ndarray:
+    """(3,) sensor noise sd per axis (m) from levitated samples (N, 3), NaN rows allowed.
+
+    From second differences, which cancel the slow levitated orbit (an unbalance orbit of a
+    few um at the rotor speed moves ~1e-8 m between three samples at 10 kHz): for white noise
+    var(x[k+1] - 2 x[k] + x[k-1]) = 6 sigma^2. Robust: 1.4826 MAD instead of the sd.
+    """
+    second = levitated[2:] - 2.0 * levitated[1:-1] + levitated[:-2]
+    sigma = np.full(3, np.nan)
+    for axis in range(3):
+        values = second[:, axis][np.isfinite(second[:, axis])]
+        if values.size >= 20:
+            sigma[axis] = 1.4826 * np.median(np.abs(values - np.median(values))) / np.sqrt(6.0)
+    return sigma
+
+
+def standard_errors(hessian: np.ndarray, n_valid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior sd and correlation matrix of stage-1 coordinates from the Hessian of J.
+
+    J is twice the negative log-posterior divided by N, so the posterior precision is N H / 2.
+    """
+    precision = 0.5 * n_valid * 0.5 * (hessian + hessian.T)
+    covariance = np.linalg.pinv(precision)
+    sd = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = covariance / np.outer(sd, sd)
+    return sd, np.nan_to_num(correlation)
+
+
+def strongest_correlations(names: list[str], correlation: np.ndarray, count: int = 5) -> list[tuple[str, str, float]]:
+    """The `count` largest |correlations| between distinct coordinates, strongest first."""
+    pairs = [(names[i], names[j], float(correlation[i, j])) for i in range(len(names)) for j in range(i + 1, len(names))]
+    return sorted(pairs, key=lambda p: -abs(p[2]))[:count]
+
+
+def place_centres(deformation: np.ndarray, velocity: np.ndarray, count: int = 5) -> tuple[np.ndarray, np.ndarray] | None:
+    """A count x count grid of kernel centres over in-contact samples (deformation m > 0, velocity
+    m/s): deformation from 0 to its 99th percentile, velocity over its 1st-99th percentiles.
+
+    Returns (T (count^2, 2) in normalised units, scale (2,) m and m/s): one normalised unit is
+    one grid spacing, so a width of 1 lets neighbouring centres overlap as on the YAML grid.
+    None when fewer than 20 samples are in contact.
+    """
+    keep = np.isfinite(deformation) & np.isfinite(velocity) & (deformation > 0.0)
+    if np.count_nonzero(keep) < 20:
+        return None
+    d, v = deformation[keep], velocity[keep]
+    d_top = float(np.percentile(d, 99.0))
+    v_low, v_high = (float(x) for x in np.percentile(v, [1.0, 99.0]))
+    if v_high - v_low <= 0.0 or d_top <= 0.0:
+        return None
+    scale = np.array([d_top / (count - 1), (v_high - v_low) / (count - 1)])
+    d_centres = np.arange(count, dtype=float)
+    v_centres = v_low / scale[1] + np.arange(count, dtype=float)
+    grid_d, grid_v = np.meshgrid(d_centres, v_centres, indexing="ij")
+    return np.stack([grid_d.ravel(), grid_v.ravel()], axis=1), scale
+
+
+@jax.jit
+def filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
+    """(B, L, 7) filtered states of every record and (B, L) normalised innovations squared."""
+
+    def one(etas: Array, mean: Array, cov: Array, gates: Array):
+        out = ekf(model._replace(effects=model.effects.with_gates(gates)), noise, h, Belief(mean, cov), etas)
+        nu = jnp.where(out.used[:, None], out.innovation, 0.0)
+        nis = jnp.einsum("ni,ni->n", nu, jnp.linalg.solve(out.innovation_cov, nu[..., None])[..., 0])
+        return out.filtered.mean, jnp.where(out.used, nis, jnp.nan)
+
+    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates)
+
+
+def contact_samples(model: Model, states: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """(radial deformation r - r0, rdot) and (axial compression -(z + z0), zdot) of states (..., 7),
+    flattened, m and m/s (the kernel inputs rho and zeta of eq. 10)."""
+    states = np.asarray(states).reshape(-1, 7)
+    states = states[np.all(np.isfinite(states), axis=1)]
+    r, cos_a, sin_a = (np.asarray(v) for v in polar(states[:, 0], states[:, 1]))
+    rdot = cos_a * states[:, 4] + sin_a * states[:, 5]
+    radial = (r - model.rig.radial_clearance, rdot)
+    axial = (-(states[:, 2] + model.rig.axial_clearance), states[:, 6])
+    return radial, axial
+
+
+def kernel_from_data(
+    kernel: Kernel, radial: tuple[np.ndarray, np.ndarray], axial: tuple[np.ndarray, np.ndarray], count: int = 5
+) -> tuple[Kernel, list[str]]:
+    """`kernel` with centre sets placed on the in-contact (deformation, velocity) samples of each
+    contact (`place_centres`); a set without enough contact keeps the given grid (and says so)."""
+    notes = []
+    placed_R, placed_Z = place_centres(*radial, count), place_centres(*axial, count)
+    T_R, scale_R, T_Z, scale_Z = kernel.T_R, kernel.scale_R, kernel.T_Z, kernel.scale_Z
+    if placed_R is None:
+        notes.append("radial contact too rare in the data to place the radial centres; the kernel.* grid is kept")
+    else:
+        T_R, scale_R = placed_R
+    if placed_Z is None:
+        notes.append("axial contact too rare in the data to place the axial centres; the kernel.* grid is kept")
+    else:
+        T_Z, scale_Z = placed_Z
+    return kernel._replace(T_R=jnp.asarray(T_R), T_Z=jnp.asarray(T_Z), scale_R=jnp.asarray(scale_R), scale_Z=jnp.asarray(scale_Z)), notes
