@@ -57,6 +57,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from touchdown_ros.sim.campaign import CAMPAIGN
     from touchdown_ros.sim.simulator import simulate_drop
 
+    if getattr(args, "variant", None):
+        return _simulate_variant(args)
+    if not args.campaign and not args.experiment:
+        raise ValueError("pass --campaign, --experiment N... or --variant NAME")
     config = _config(args)
     numbers = [c.number for c in CAMPAIGN] if args.campaign else args.experiment
     conditions = [c for c in CAMPAIGN if c.number in numbers]
@@ -71,6 +75,27 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         record = simulate_drop(config, condition, seed=args.seed + condition.number)
         write_drop_bag(record, config, target, overwrite=args.overwrite)
     print(f"wrote {len(targets)} bag(s) to {args.out}")
+    return 0
+
+
+def _simulate_variant(args: argparse.Namespace) -> int:
+    """`simulate --variant NAME`: the variant's drops as bags NAME_NN, its rig.yaml next to them."""
+    from touchdown_ros.sim.family import RIG_FILE, bag_name, variant, write_variant_bags
+
+    v = variant(args.variant)
+    if args.campaign:
+        raise ValueError("--campaign is Table 1 of the reference rig; with --variant pick drops with --experiment N...")
+    if args.config is not None or args.param:
+        raise ValueError("--variant brings its own rig (the reference rig with its overrides); drop --config and -p")
+    numbers = sorted(set(args.experiment or range(1, v.drops + 1)))
+    if numbers[0] < 1:
+        raise ValueError(f"experiment numbers of a variant start at 1, got {numbers[0]}")
+    for number in numbers:
+        _refuse_existing(args.out / bag_name(v, number), args.overwrite)
+    paths = []
+    for number in progress(numbers, len(numbers), f"simulate {v.name}"):
+        paths += write_variant_bags(v, args.out, seed=args.seed, numbers=[number], overwrite=args.overwrite)
+    print(f"wrote {len(paths)} bag(s) of rig variant {v.name} ({v.description}) and its {RIG_FILE} to {args.out}")
     return 0
 
 
@@ -232,6 +257,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _variant_names() -> list[str]:
+    from touchdown_ros.sim.family import VARIANTS
+
+    return [v.name for v in VARIANTS]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="touchdown", description="AMB rotor touchdown: simulate drop tests, estimate velocity, acceleration, force."
@@ -241,11 +272,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="simulate drop tests into rosbag2 MCAP bags (with truth topics)")
     _add_config(p)
-    which = p.add_mutually_exclusive_group(required=True)
+    which = p.add_mutually_exclusive_group()
     which.add_argument("--campaign", action="store_true", help="all 21 experiments of the paper's Table 1")
-    which.add_argument("--experiment", type=int, nargs="+", metavar="N", help="experiment number(s) of Table 1")
+    which.add_argument(
+        "--experiment", type=int, nargs="+", metavar="N",
+        help="experiment number(s) of Table 1, or with --variant of the variant's drops (1, 2, ...)",
+    )
+    p.add_argument(
+        "--variant", metavar="NAME",
+        help="a rig of the family that differs from the reference rig (touchdown_ros.sim.family): "
+        "bags NAME_NN (default: its 3 drops) and the variant's rig.yaml in --out; one of: " + ", ".join(_variant_names()),
+    )
     p.add_argument("--seed", type=int, default=0, help="base random seed (experiment N uses seed + N)")
-    p.add_argument("-o", "--out", type=Path, required=True, help="directory for the bags exp_NN/")
+    p.add_argument("-o", "--out", type=Path, required=True, help="directory for the bags exp_NN/ (or NAME_NN/)")
     p.add_argument("--overwrite", action="store_true", help="replace existing bags")
     p.set_defaults(run=cmd_simulate)
 

@@ -12,6 +12,8 @@ from touchdown_ros.io.config import Config, ConfigError
 from touchdown_ros.sim.physics import Truth
 
 BALLS = ("ceramic", "steel")
+#: `simulator.damping_law`: Hunt-Crossley K d^n (1 + D d_dot) or Kelvin-Voigt K d^n + C d_dot.
+DAMPING_LAWS = ("hunt_crossley", "linear")
 
 # name: (default, lower bound, upper bound, lower bound inclusive). Defaults are the reference
 # rig's values (config/reference_rig.yaml, where each is documented with its unit).
@@ -46,6 +48,9 @@ _BALL_BOUNDS: dict[str, tuple[float, float, bool]] = {
     "ring_inertia": (0.0, math.inf, False),
     "ring_drag": (0.0, math.inf, True),
     "ring_drag_torque": (0.0, math.inf, True),
+    "contact_exponent": (1.0, 2.0, True),
+    "radial_viscous_damping": (0.0, math.inf, True),
+    "axial_viscous_damping": (0.0, math.inf, True),
 }
 _BALL_DEFAULTS: dict[str, dict[str, float]] = {
     "ceramic": {
@@ -59,6 +64,9 @@ _BALL_DEFAULTS: dict[str, dict[str, float]] = {
         "ring_inertia": 3.0e-3,
         "ring_drag": 1.0e-3,
         "ring_drag_torque": 0.5,
+        "contact_exponent": 1.5,
+        "radial_viscous_damping": 5.0e4,
+        "axial_viscous_damping": 5.0e4,
     },
     "steel": {
         "radial_stiffness": 2.6e11,
@@ -71,9 +79,14 @@ _BALL_DEFAULTS: dict[str, dict[str, float]] = {
         "ring_inertia": 4.5e-3,
         "ring_drag": 1.5e-3,
         "ring_drag_torque": 0.8,
+        "contact_exponent": 1.5,
+        "radial_viscous_damping": 5.0e4,
+        "axial_viscous_damping": 5.0e4,
     },
 }
 #: Constants that vary from experiment to experiment by `variation` (relative standard deviation).
+#: The Kelvin-Voigt dampings C take the factor drawn for the Hunt-Crossley D of their direction
+#: (no draw of their own: the random stream, hence the default rig's drops, stay as they were).
 _VARIED = (
     "radial_stiffness",
     "radial_damping",
@@ -85,6 +98,7 @@ _VARIED = (
     "amb_decay_time",
     "brake_deceleration",
 )
+_SHARES_FACTOR_OF = {"radial_viscous_damping": "radial_damping", "axial_viscous_damping": "axial_damping"}
 _DEFAULT_START = "2026-01-01T00:00:00Z"
 
 
@@ -96,6 +110,7 @@ class SimulatorParameters:
     scalars: Mapping[str, float]
     balls: Mapping[str, Mapping[str, float]]
     start_time_ns: int  # ns since the Unix epoch, first experiment's first sample
+    damping_law: str = "hunt_crossley"  # one of DAMPING_LAWS
 
 
 def _number(key: str, value: Any, low: float, high: float, low_inclusive: bool) -> float:
@@ -112,7 +127,7 @@ def _number(key: str, value: Any, low: float, high: float, low_inclusive: bool) 
 def simulator_parameters(config: Config) -> SimulatorParameters:
     """Validate `config.simulator` (flat dotted keys); unknown keys and bad values name the key."""
     raw = dict(config.simulator)
-    known = {"substeps", "start_time", *_SCALARS, *(f"{b}.{k}" for b in BALLS for k in _BALL_BOUNDS)}
+    known = {"substeps", "start_time", "damping_law", *_SCALARS, *(f"{b}.{k}" for b in BALLS for k in _BALL_BOUNDS)}
     unknown = sorted(set(raw) - known)
     if unknown:
         raise ConfigError("unknown simulator parameter(s): " + ", ".join(f"'simulator.{k}'" for k in unknown))
@@ -134,6 +149,12 @@ def simulator_parameters(config: Config) -> SimulatorParameters:
         if balls[b]["friction_kinetic"] > balls[b]["friction_static"]:
             raise ConfigError(f"parameter 'simulator.{b}.friction_kinetic' must not exceed '{b}.friction_static'")
 
+    damping_law = raw.get("damping_law", DAMPING_LAWS[0])
+    if damping_law not in DAMPING_LAWS:
+        raise ConfigError(
+            f"parameter 'simulator.damping_law' must be one of {', '.join(DAMPING_LAWS)}, got {damping_law!r}"
+        )
+
     start = raw.get("start_time", _DEFAULT_START)
     try:
         stamp = datetime.fromisoformat(str(start).replace("Z", "+00:00"))
@@ -147,7 +168,7 @@ def simulator_parameters(config: Config) -> SimulatorParameters:
     for key in ("levitated_time", "drop_duration"):
         if scalars[key] < 10 * period:
             raise ConfigError(f"parameter 'simulator.{key}' must cover at least 10 sensor samples ({10 * period:g} s)")
-    return SimulatorParameters(substeps, scalars, balls, start_ns)
+    return SimulatorParameters(substeps, scalars, balls, start_ns, damping_law)
 
 
 def truth_constants(
@@ -163,8 +184,10 @@ def truth_constants(
     if ball not in BALLS:
         raise ValueError(f"unknown ball type {ball!r}; expected one of {BALLS}")
     values: dict[str, float] = {**params.scalars, **params.balls[ball]}
-    for name in _VARIED:
-        values[name] *= float(np.clip(1.0 + values["variation"] * rng.standard_normal(), 0.5, 1.5))
+    factors = {name: float(np.clip(1.0 + values["variation"] * rng.standard_normal(), 0.5, 1.5)) for name in _VARIED}
+    factors.update({name: factors[like] for name, like in _SHARES_FACTOR_OF.items()})
+    for name, factor in factors.items():
+        values[name] *= factor
     load = values["axial_load"] * float(np.clip(1.0 + 0.5 * values["variation"] * rng.standard_normal(), 0.5, 1.5))
     rig = config.rig
     return Truth(
@@ -198,24 +221,91 @@ def truth_constants(
         axial_load=load if axial_load else 0.0,
         drop_time=drop_time,
         axial_thrust=values["axial_thrust"],
+        radial_exponent=values["contact_exponent"],
+        axial_exponent=values["contact_exponent"],
+        linear_damping=1.0 if params.damping_law == "linear" else 0.0,
+        radial_viscous_damping=values["radial_viscous_damping"],
+        axial_viscous_damping=values["axial_viscous_damping"],
     )
 
 
-def check_step_size(params: SimulatorParameters, truth: Truth, speed: float, period: float) -> None:
-    """Refuse a substep too long for the stiffest mode: the ring stuck to the rotor by friction.
+#: h * rate below which classical RK4 is stable with margin (its limit is ~2.8 on the real and imaginary axes).
+_RK4_LIMIT = 2.5
 
-    Rate ~ mu_s F (R + r0)^2 / (v_reg J_ring) + mu_s F / (m v_reg) with F = 1.5 m r0 omega^2
-    (synchronous whirl with margin); classical RK4 is stable up to h * rate ~ 2.8 on the real axis.
+
+def impact_speed_bound(truth: Truth, speed: float) -> float:
+    """m/s, a bound on the speed at which the rotor meets the bearing: a free fall over the axial
+    clearance under gravity and load, plus the rotor's rim speed over the radial clearance, r0 omega."""
+    fall = truth.gravity + (truth.axial_load + truth.axial_thrust) / truth.mass
+    return math.sqrt(2.0 * fall * truth.axial_clearance) + truth.radial_clearance * abs(speed)
+
+
+def contact_rate(
+    stiffness: float, exponent: float, damping: float, viscous_damping: float, linear: bool, mass: float, impact: float
+) -> float:
+    """1/s, the fastest rate of the rotor on one contact of K d^n (N/m^n): |eigenvalue| of
+    m x'' + c x' + k x with k, c the contact's slopes dF/dd, dF/dd_dot at the deformation d*
+    that stores the kinetic energy of an impact at `impact` m/s (K d*^(n+1) / (n + 1) = m v^2 / 2),
+    the largest a drop can reach; the rate grows with d for n >= 1.
+
+    Hunt-Crossley (D in s/m): k = n K d^(n-1) (1 + D v), c = K d^n D; Kelvin-Voigt: k = n K d^(n-1), c = C.
+    """
+    energy = 0.5 * mass * impact**2
+    d = ((exponent + 1.0) * energy / stiffness) ** (1.0 / (exponent + 1.0))
+    k = exponent * stiffness * d ** (exponent - 1.0)
+    if linear:
+        c = viscous_damping
+    else:
+        k *= 1.0 + damping * impact
+        c = stiffness * d**exponent * damping
+    half = c / (2.0 * mass)
+    return half + math.sqrt(half * half + k / mass)
+
+
+def check_step_size(
+    params: SimulatorParameters, truth: Truth, speed: float, period: float, ball: str = "<ball>"
+) -> None:
+    """Refuse a substep too long for the stiffest mode of the drop (RK4 needs h * rate < 2.5).
+
+    Two candidates. The ring stuck to the rotor by friction:
+    rate ~ mu_s F (R + r0)^2 / (v_reg J_ring) + mu_s F / (m v_reg) with F = 1.5 m r0 omega^2
+    (synchronous whirl with margin). The bore and face contacts: `contact_rate` at the
+    deformation an impact at `impact_speed_bound` reaches (a stiffer or more damped contact,
+    a higher exponent at a large deformation or a lighter rotor need more substeps).
+    `ball` (the experiment's ball) names the keys in the message.
     """
     force = 1.5 * truth.mass * truth.radial_clearance * speed**2
     slip_gain = truth.friction_static * force / truth.regularisation_velocity
-    rate = slip_gain * (truth.journal_radius + truth.radial_clearance) ** 2 / truth.ring_inertia
-    rate += slip_gain / truth.mass
+    ring_rate = slip_gain * (truth.journal_radius + truth.radial_clearance) ** 2 / truth.ring_inertia
+    ring_rate += slip_gain / truth.mass
+    impact = impact_speed_bound(truth, speed)
+    linear = truth.linear_damping > 0.5
+    rates = {
+        "ring": ring_rate,
+        "radial": contact_rate(
+            truth.radial_stiffness, truth.radial_exponent, truth.radial_damping, truth.radial_viscous_damping,
+            linear, truth.mass, impact,
+        ),
+        "axial": contact_rate(
+            truth.axial_stiffness, truth.axial_exponent, truth.axial_damping, truth.axial_viscous_damping,
+            linear, truth.mass, impact,
+        ),
+    }
+    stiffest = max(rates, key=rates.__getitem__)
+    rate = rates[stiffest]
     h = period / params.substeps
-    if h * rate > 2.5:
-        needed = int(math.ceil(period * rate / 2.5))
+    if h * rate <= _RK4_LIMIT:
+        return
+    needed = int(math.ceil(period * rate / _RK4_LIMIT))
+    head = f"parameter 'simulator.substeps' = {params.substeps} is too few for "
+    if stiffest == "ring":
         raise ConfigError(
-            f"parameter 'simulator.substeps' = {params.substeps} is too few for these friction and ring constants "
-            f"(stiff ring-rotor stick: h * rate = {h * rate:.1f} > 2.5); use at least {needed}, "
-            f"or raise 'simulator.regularisation_velocity' or the ring inertia"
+            head + f"these friction and ring constants (stiff ring-rotor stick: h * rate = {h * rate:.1f} > "
+            f"{_RK4_LIMIT}); use at least {needed}, or raise 'simulator.regularisation_velocity' or the ring inertia"
         )
+    damping = "viscous_damping" if linear else "damping"
+    raise ConfigError(
+        head + f"the {stiffest} contact of the {ball} ball (stiff contact at {impact:.2g} m/s impact: h * rate = "
+        f"{h * rate:.1f} > {_RK4_LIMIT}); use at least {needed}, or lower 'simulator.{ball}.{stiffest}_stiffness', "
+        f"'simulator.{ball}.{stiffest}_{damping}' or 'simulator.{ball}.contact_exponent'"
+    )

@@ -3,10 +3,11 @@
 Richer than the estimator's model (paper eq. 4-8) on purpose, and written
 independently of `touchdown_ros.core`:
 
-- Hunt-Crossley contacts F = K d^1.5 (1 + D d_dot), clipped >= 0, on the bearing
-  bore (radial, d = r - r0) and on the inner-ring face (axial, d = -(z + z0)); the
-  axial force passes a preloaded support that yields above its preload (a knee in
-  the axial stiffness).
+- Normal contact forces on the bearing bore (radial, d = r - r0) and on the
+  inner-ring face (axial, d = -(z + z0)), clipped >= 0 and zero out of contact:
+  Hunt-Crossley F = K d^n (1 + D d_dot) (default, n = 1.5: Hertz point contact) or
+  Kelvin-Voigt F = K d^n + C d_dot (`damping_law: linear`); the axial force passes
+  a preloaded support that yields above its preload (a knee in the axial stiffness).
 - The bearing's inner ring is a body of its own with spin speed omega_ring: it is
   at rest before the drop, spun up by friction and slowed by its own drag. Once it
   co-rotates, friction drives the rotor into forward whirl (towards rigid
@@ -57,10 +58,10 @@ class Truth(NamedTuple):
     ring_inertia: float  # kg m^2, inner ring with its share of the balls
     ring_drag: float  # N m s/rad, viscous drag of the spinning ring
     ring_drag_torque: float  # N m, constant (Coulomb) drag of the ring
-    radial_stiffness: float  # K_R, N/m^1.5
+    radial_stiffness: float  # K_R, N/m^n (n = radial_exponent)
     radial_damping: float  # D_R, s/m (Hunt-Crossley)
-    axial_stiffness: float  # K_Z, N/m^1.5
-    axial_damping: float  # D_Z, s/m
+    axial_stiffness: float  # K_Z, N/m^n (n = axial_exponent)
+    axial_damping: float  # D_Z, s/m (Hunt-Crossley)
     axial_mount_preload: float  # N, preload of the disc springs under the bearing housing
     axial_mount_span: float  # N, force the yielding support adds at most above its preload
     friction_static: float  # mu_s, 1
@@ -76,6 +77,11 @@ class Truth(NamedTuple):
     axial_load: float  # N, downward, 0 = no loader
     drop_time: float  # s
     axial_thrust: float = 0.0  # N, amplitude of a once-per-revolution axial force A cos(theta) (a wobbling thrust collar)
+    radial_exponent: float = 1.5  # n of the bore contact K d^n, 1
+    axial_exponent: float = 1.5  # n of the face contact K d^n, 1
+    linear_damping: float = 0.0  # 1.0: Kelvin-Voigt K d^n + C d_dot; 0.0: Hunt-Crossley K d^n (1 + D d_dot)
+    radial_viscous_damping: float = 5.0e4  # C_R, N s/m (Kelvin-Voigt only)
+    axial_viscous_damping: float = 5.0e4  # C_Z, N s/m (Kelvin-Voigt only)
 
 
 class Contact(NamedTuple):
@@ -91,10 +97,19 @@ class Contact(NamedTuple):
     axial_contact: Array  # bool, z < -z0
 
 
-def hunt_crossley(K: Array, D: Array, deformation: Array, rate: Array) -> Array:
-    """Hertz-type normal force K d^1.5 (1 + D d_dot), zero out of contact and never pulling, N."""
+def normal_force(
+    K: Array, exponent: Array, D: Array, C: Array, linear: Array, deformation: Array, rate: Array
+) -> Array:
+    """Normal contact force (N) at deformation d (m) and rate d_dot (m/s), zero out of contact, never pulling.
+
+    Hunt-Crossley K d^n (1 + D d_dot) (D in s/m) when `linear` is 0, Kelvin-Voigt
+    K d^n + C d_dot (C in N s/m) when it is 1; K in N/m^n. At n = 1.5 the power is
+    the same expression as `hunt_crossley`'s, so the default rig's output is unchanged.
+    """
     d = jnp.maximum(deformation, 0.0)
-    return jnp.where(deformation > 0.0, jnp.maximum(K * d**1.5 * (1.0 + D * rate), 0.0), 0.0)
+    elastic = K * d**exponent
+    force = jnp.where(linear > 0.5, elastic + C * rate, elastic * (1.0 + D * rate))
+    return jnp.where(deformation > 0.0, jnp.maximum(force, 0.0), 0.0)
 
 
 def yielding_mount(force: Array, preload: Array, span: Array) -> Array:
@@ -102,8 +117,8 @@ def yielding_mount(force: Array, preload: Array, span: Array) -> Array:
 
     Rigid up to `preload`, then the disc springs yield and the force creeps towards
     preload + span: f -> preload + span x / (span + x), x = f - preload. Monotone with
-    slope <= 1 and continuous slope at the knee, so applied to a Hunt-Crossley force
-    it keeps the elastic part conservative and the damping part dissipative.
+    slope <= 1 and continuous slope at the knee, so applied to a Hunt-Crossley or
+    Kelvin-Voigt force it keeps the elastic part conservative and the damping part dissipative.
     """
     excess = jnp.maximum(force - preload, 0.0)
     return jnp.where(force > preload, preload + span * excess / (span + excess), force)
@@ -125,17 +140,33 @@ def contact(p: Truth, s: Array) -> Contact:
     whirl = -ny * vx + nx * vy  # m/s, > 0 forward (anticlockwise)
     v_reg = p.regularisation_velocity
 
-    # Bore: Hertz normal force, friction on the combined tangential/axial slip.
-    F_nR = hunt_crossley(p.radial_stiffness, p.radial_damping, r - p.radial_clearance, r_dot)
+    # Bore: normal force, friction on the combined tangential/axial slip.
+    F_nR = normal_force(
+        p.radial_stiffness,
+        p.radial_exponent,
+        p.radial_damping,
+        p.radial_viscous_damping,
+        p.linear_damping,
+        r - p.radial_clearance,
+        r_dot,
+    )
     slip_t = whirl + p.journal_radius * omega - (p.journal_radius + r) * omega_ring
     bore_speed = jnp.sqrt(slip_t**2 + vz**2)
     bore_scale = stribeck(p, bore_speed) * F_nR / jnp.sqrt(bore_speed**2 + v_reg**2)
     f_t = bore_scale * slip_t  # N, on the rotor along -t
     F_zR = -bore_scale * vz
 
-    # Face: Hertz axial force; friction on lateral slip u and spin slip of rotor vs ring.
+    # Face: axial normal force through the yielding mount; friction on lateral slip u and spin slip of rotor vs ring.
     F_zZ = yielding_mount(
-        hunt_crossley(p.axial_stiffness, p.axial_damping, -(z + p.axial_clearance), -vz),
+        normal_force(
+            p.axial_stiffness,
+            p.axial_exponent,
+            p.axial_damping,
+            p.axial_viscous_damping,
+            p.linear_damping,
+            -(z + p.axial_clearance),
+            -vz,
+        ),
         p.axial_mount_preload,
         p.axial_mount_span,
     )

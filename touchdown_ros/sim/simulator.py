@@ -70,7 +70,7 @@ def simulate_drop(
     truth = truth_constants(config, params, condition.ball, condition.brake, condition.axial_load, drop_time, rng)
     theta0 = float(rng.uniform(0.0, 2.0 * np.pi))
     speed = condition.speed_rpm * RPM
-    check_step_size(params, truth, speed, period)
+    check_step_size(params, truth, speed, period, condition.ball)
     s0 = levitated_state(truth, theta0, speed)
     p = Truth(*(jnp.asarray(v, dtype=jnp.float64) for v in truth))
     states = integrate(p, jnp.asarray(s0), n_samples, params.substeps, float(period))
