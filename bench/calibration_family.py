@@ -1,0 +1,161 @@
+"""Identification on rigs nobody tuned the estimator to: the simulated rig family.
+
+For each rig of `touchdown_ros.sim.family` (constants differing widely from the
+reference: stiffness, damping law, friction, contact exponent, mass, noise), simulate
+drops, run `touchdown train` with its defaults on the first bags from the reference
+rig's contact guess, and estimate the other bags (smoothed) with
+- guess: the rig YAML's nominal constants as they are (constant model),
+- stage 1: the calibrated contact law and constants (alpha = 0),
+- stage 1+2: the calibrated constants with the PKBKR functions of the coefficient file,
+against the simulator's truth.
+
+    .venv/bin/python bench/calibration_family.py [--variants a,b] [--train 3] [--test 2]
+        [--loss nll|one_step] [--out DIR]
+
+Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.
+Figures per held-out bag: peak axial / radial force error (%), force RMSE over the peak force
+(%), displacement RMSE over the sensor noise, and the share of samples where the 95 % band
+of velocity and of force covers the truth (%).
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from touchdown_ros.core.metrics import relative_peak_error
+from touchdown_ros.io.coefficients import load_coefficients
+from touchdown_ros.offline import estimate_bag, estimator_for
+from touchdown_ros.sim.family import VARIANTS, variant, variant_config, write_variant_bags
+from touchdown_ros.train import train
+
+Z95 = 1.959964
+
+
+def _coverage(estimate: np.ndarray, cov: np.ndarray | None, truth: np.ndarray) -> float | None:
+    """% of finite samples and axes where |estimate - truth| <= 1.96 sd."""
+    if cov is None:
+        return None
+    sd = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0.0, None))
+    ok = np.isfinite(truth) & np.isfinite(estimate)
+    return float(100.0 * np.mean((np.abs(estimate - truth) <= Z95 * sd)[ok]))
+
+
+def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
+    """The figures of one held-out bag, from the smoothed estimate."""
+    smoothed, truth = result.estimate.smoothed, result.truth
+    force, true_force = np.asarray(smoothed.force_xyz), truth.contact_force
+    radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(true_force[:, 0], true_force[:, 1])
+    peak = float(np.nanmax(np.linalg.norm(true_force, axis=1)))
+    force_rmse = float(np.sqrt(np.nanmean(np.sum((force - true_force) ** 2, axis=1))))
+    position = np.asarray(smoothed.state)[:, :3]
+    measured = result.estimate.measured
+    force_cov = getattr(smoothed, "force_cov", None)
+    return {
+        "peak_axial_error_percent": 100.0 * relative_peak_error(force[:, 2], true_force[:, 2]),
+        "peak_radial_error_percent": 100.0 * relative_peak_error(radial, true_radial),
+        "force_rmse_percent_of_peak": 100.0 * force_rmse / peak,
+        "displacement_rmse_over_noise": float(np.sqrt(np.nanmean((position - measured) ** 2)) / noise_rms),
+        "velocity_band_coverage_percent": _coverage(
+            np.asarray(smoothed.state)[:, 4:], np.asarray(smoothed.state_cov)[:, 4:, 4:], truth.velocity
+        ),
+        "force_band_coverage_percent": _coverage(force, None if force_cov is None else np.asarray(force_cov), true_force),
+    }
+
+
+def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log) -> dict:
+    v = variant(name)
+    config = variant_config(v)
+    if loss != config.training.loss:
+        from dataclasses import replace
+
+        config = replace(config, training=replace(config.training, loss=loss))
+    bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
+    coeffs_path = out / name / f"coefficients_{loss}.yaml"
+    started = time.perf_counter()
+    outcome = train(config, bags[:n_train], coeffs_path, stream=log)
+    seconds = time.perf_counter() - started
+    loaded = load_coefficients(coeffs_path, config)
+    calibrated = loaded.config(config)
+    models = {
+        "guess": (config, estimator_for(config)),
+        "stage 1": (calibrated, estimator_for(calibrated, effects=loaded.effects)),
+        "stage 1+2": (calibrated, estimator_for(calibrated, loaded.coeffs, loaded.effects)),
+    }
+    noise_rms = config.noise_rms
+    figures = {
+        label: [bag_figures(estimate_bag(cfg, bag, est), noise_rms) for bag in bags[n_train:]]
+        for label, (cfg, est) in models.items()
+    }
+    cal = outcome.calibration
+    return {
+        "variant": name,
+        "description": v.description,
+        "loss": loss,
+        "train_seconds": round(seconds, 1),
+        "law": calibrated.law.label,
+        "calibrated": {k: float(x) for k, x in calibrated.nominal._asdict().items()},
+        "relative_standard_error": cal.relative_sd if cal else {},
+        "held_by_prior": list(cal.held_by_prior) if cal else [],
+        "stage1_converged": bool(cal and cal.convergence.converged),
+        "stage2_converged": bool(outcome.pkbkr.convergence and outcome.pkbkr.convergence.converged),
+        "mean_nis": list(outcome.mean_nis),
+        "figures": figures,
+    }
+
+
+def _worst(rows: list[dict], key: str) -> float | None:
+    values = [abs(r[key]) for r in rows if r[key] is not None]
+    return max(values) if values else None
+
+
+def table(results: list[dict]) -> str:
+    """Markdown: per rig and model, the worst held-out bag of each figure."""
+    lines = [
+        "| rig | model | law | peak F_z err % | peak F_r err % | force RMSE / peak % | disp. RMSE / noise | 95 % band covers v / F % |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for result in results:
+        for label, rows in result["figures"].items():
+            law = result["law"] if label != "guess" else "linear (guess)"
+            cover_v = [r["velocity_band_coverage_percent"] for r in rows]
+            cover_f = [r["force_band_coverage_percent"] for r in rows]
+            coverage = f"{min(cover_v):.0f}" + (f" / {min(cover_f):.0f}" if None not in cover_f else " / -")
+            lines.append(
+                f"| {result['variant']} ({result['loss']}) | {label} | {law} | {_worst(rows, 'peak_axial_error_percent'):.1f} | "
+                f"{_worst(rows, 'peak_radial_error_percent'):.1f} | {_worst(rows, 'force_rmse_percent_of_peak'):.1f} | "
+                f"{_worst(rows, 'displacement_rmse_over_noise'):.2f} | {coverage} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS))
+    parser.add_argument("--train", type=int, default=3, help="bags to train on per rig")
+    parser.add_argument("--test", type=int, default=2, help="held-out bags per rig")
+    parser.add_argument("--loss", default="nll", choices=("nll", "one_step"))
+    parser.add_argument("--out", type=Path, default=Path("results-family"))
+    parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name in args.variants.split(","):
+        log = sys.stderr if args.verbose else io.StringIO()
+        print(f"[{name}] simulating, training on {args.train} bags, estimating {args.test} ...", file=sys.stderr, flush=True)
+        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log))
+        print(table(results[-1:]), file=sys.stderr, flush=True)
+        (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
+    text = table(results)
+    (args.out / f"family_{args.loss}.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
