@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.core.types import Coefficients
+from touchdown_ros.core.types import Coefficients, ContactLaw
 from touchdown_ros.io.coefficients import (
     CoefficientFileError,
     TrainingRecord,
@@ -33,17 +33,50 @@ def test_round_trip_is_exact_and_records_training(tmp_path):
     np.testing.assert_array_equal(loaded.coeffs.alpha_Z, coeffs.alpha_Z)
     assert loaded.training.final_loss == 3.5 and loaded.training.steps == 7
     document = yaml.safe_load(path.read_text())
-    assert document["schema_version"] == 1 and document["rig_fingerprint"] == CONFIG.fingerprint()
+    assert document["schema_version"] == 2 and document["rig_fingerprint"] == CONFIG.fingerprint()
     assert set(document["coefficients"]) >= {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"}
     assert document["training"]["bags"] == [{"path": "a", "sha256": "00"}]
+    assert oct(path.stat().st_mode & 0o777) == oct(0o666 & ~current_umask())  # readable by a node of another user
+
+
+def current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_file_carries_its_calibration(tmp_path):
+    """Contact law and constants, kernel (centres and scales) and filter noise come from the file,
+    not from the YAML that loads it: the YAML holds guesses."""
+    calibrated = CONFIG.calibrated(
+        CONFIG.nominal._replace(k_R=3.0e11, c_Z=1.5e12),
+        ContactLaw("hertz", 1.5),
+        CONFIG.kernel._replace(scale_R=np.array([7e-6, 0.02]), T_Z=np.asarray(CONFIG.kernel.T_Z) + 0.5),
+        CONFIG.noise._replace(measurement=np.array([1e-12, 2e-12, 3e-12]), process=np.asarray(CONFIG.noise.process) * 3),
+    )
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
+    other_guess = load_config(overrides={"contact.k_R": 5.0e8, "kernel.width": 2.0, "filter.measurement_noise": 9e-6})
+    loaded = load_coefficients(path, other_guess).config(other_guess)
+    assert loaded.law == ContactLaw("hertz", 1.5) and loaded.model().law == loaded.law
+    assert loaded.nominal == calibrated.nominal
+    for field in ("T_R", "T_Z", "scale_R", "scale_Z"):
+        np.testing.assert_array_equal(getattr(loaded.kernel, field), getattr(calibrated.kernel, field))
+    assert loaded.kernel.width == CONFIG.kernel.width
+    np.testing.assert_allclose(loaded.noise.measurement, [1e-12, 2e-12, 3e-12], rtol=1e-12)
+    np.testing.assert_array_equal(loaded.noise.process, np.asarray(CONFIG.noise.process) * 3)
+    document = yaml.safe_load(path.read_text())
+    document["contact"]["k_R"] = -1.0
+    path.write_text(yaml.safe_dump(document))
+    with pytest.raises(CoefficientFileError, match=r"contact\.k_R must be a finite number >= 0"):
+        load_coefficients(path, CONFIG)
 
 
 def test_other_rig_is_refused_naming_the_difference(tmp_path):
     path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), CONFIG, TrainingRecord())
-    other = load_config(reference_rig_path(), overrides={"rig.mass": 250.0, "contact.k_Z": 1.0e8})
+    other = load_config(reference_rig_path(), overrides={"rig.mass": 250.0, "sensor.sample_period": 2.0e-4})
     with pytest.raises(CoefficientFileError, match=r"rig\.mass: file 240\.0, rig 250\.0") as error:
         load_coefficients(path, other)
-    assert "contact.k_Z" in str(error.value)
+    assert "sample_period: file 0.0001, rig 0.0002" in str(error.value)
 
 
 @pytest.mark.parametrize(
