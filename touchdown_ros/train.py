@@ -224,8 +224,12 @@ def minimise(
     )
     reason = str(result.message)
     converged = bool(result.success) and result.fun < DIVERGED_LOSS
-    if not converged and "ABNORMAL" in reason and len(history) > 0:
-        reason += " (the line search found no lower loss along the last direction: at the noise floor of the loss)"
+    recent = np.asarray(history[-4:])
+    if not converged and "ABNORMAL" in reason and len(recent) == 4:
+        change = np.max(np.abs(np.diff(recent))) / max(abs(recent[-1]), 1.0)
+        if change < 10.0 * tolerance:
+            converged = True
+            reason += f" (the line search found no lower loss; the last steps changed it by {change:.1e}: at its noise floor)"
     convergence = Convergence(
         converged, reason, int(result.nit), initial_loss, float(result.fun), time.perf_counter() - start, tuple(history)
     )
@@ -347,8 +351,24 @@ class Calibration:
         }
 
 
-class DivergedError(FloatingPointError):
+class TrainingError(ValueError):
+    """Training cannot give a trustworthy coefficient file from these bags and settings."""
+
+
+class DivergedError(TrainingError):
     """The filter diverges from the starting guess on a bag."""
+
+
+class NotConvergedError(TrainingError):
+    """A training stage reached its step cap before converging."""
+
+
+def _require_convergence(convergence: Convergence, stage: str, paths: Sequence[Path], knob: str) -> None:
+    if not convergence.converged:
+        raise NotConvergedError(
+            f"{', '.join(map(str, paths))}: {stage} did not converge in {convergence.steps} steps "
+            f"({convergence.reason}); allow more with {knob}, or check that these bags are drops of this rig"
+        )
 
 
 def measured_sensor_noise(config: Config, data: TrainingData, stream=sys.stderr) -> np.ndarray:
@@ -434,6 +454,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
 
     tried.sort(key=lambda t: t[0])
     final_loss, law, guess, theta, convergence, free, unravel, expand, x = tried[0]
+    _require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
     candidates = tuple(
         {"law": t[1].label, "loss": t[0], "converged": t[4].converged, "steps": t[4].steps} for t in tried
     )
@@ -554,6 +575,10 @@ def train(
         )
 
     result = fit(calibrated, data, lam, initial, steps, on_step, stream)
+    if steps > 0:
+        _require_convergence(
+            result.convergence, "stage 2 (PKBKR)", data.paths, f"--steps N (then --resume continues from {checkpoint_path(out)})"
+        )
     final = calibrated.model(result.coeffs, result.effects)
     _, nis = filtered_states(final, calibrated.noise, config.sample_period, training_batch(calibrated, data, result.effects))
     mean_nis = tuple(float(np.nanmean(row)) for row in np.asarray(nis)[: len(data.records)])

@@ -35,10 +35,19 @@ class StepOutput(NamedTuple):
     used: Array  # bool, measurement used
 
 
+def inverse_and_det_3x3(A: Array) -> tuple[Array, Array]:
+    """Closed-form inverse (adjugate over determinant) and determinant of 3 x 3 matrices (..., 3, 3).
+
+    S is 3 x 3 and this is the hot loop; it also keeps LAPACK calls out of batched losses.
+    """
+    r0, r1, r2 = A[..., 0, :], A[..., 1, :], A[..., 2, :]
+    adjugate = jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)], axis=-1)
+    det = jnp.sum(r0 * adjugate[..., :, 0], axis=-1)
+    return adjugate / det[..., None, None], det
+
+
 def _inverse_3x3(A: Array) -> Array:
-    """Closed-form inverse (adjugate over determinant): S is 3 x 3 and this is the hot loop."""
-    adjugate = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
-    return adjugate / jnp.dot(A[0], adjugate[:, 0])
+    return inverse_and_det_3x3(A)[0]
 
 
 def update(belief: Belief, eta: Array, R: Array) -> tuple[Belief, Array, Array, Array]:

@@ -25,7 +25,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.effects import Effects
-from touchdown_ros.core.ekf import Belief, ekf
+from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
@@ -95,9 +95,11 @@ def sample_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind
         value = jnp.sum(errors**2 / noise.measurement, axis=-1)
     elif kind == "nll":
         safe = jnp.where(batch.valid[..., None], errors, 0.0)
-        mahalanobis = jnp.einsum("...i,...i->...", safe, jnp.linalg.solve(S, safe[..., None])[..., 0])
-        _, log_det = jnp.linalg.slogdet(S / jnp.sqrt(noise.measurement[:, None] * noise.measurement[None, :]))
-        value = mahalanobis + log_det
+        scaled = S / jnp.sqrt(noise.measurement[:, None] * noise.measurement[None, :])  # S R^-1 up to similarity
+        inverse, det = inverse_and_det_3x3(scaled)
+        whitened = safe / jnp.sqrt(noise.measurement)
+        mahalanobis = jnp.einsum("...i,...ij,...j->...", whitened, inverse, whitened)
+        value = mahalanobis + jnp.log(jnp.where(batch.valid, det, 1.0))
     else:
         raise ValueError(f"unknown loss {kind!r}: use one of {', '.join(LOSSES)}")
     return jnp.where(batch.valid, value, 0.0)

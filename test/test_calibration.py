@@ -1,0 +1,157 @@
+"""Stage 1 identification (core.calibration, train.calibrate) and `touchdown train` on rigs
+nobody tuned the estimator to: two rigs of the simulated family, displacement-only bags."""
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+
+from touchdown_ros.cli import EXIT_BAD_INPUT, main
+from touchdown_ros.core.calibration import (
+    convert_guess,
+    place_centres,
+    sensor_noise,
+    standard_errors,
+    strongest_correlations,
+)
+from touchdown_ros.core.dynamics import normal_force
+from touchdown_ros.core.types import ContactLaw, Nominal
+from touchdown_ros.sim.family import variant, variant_config, write_rig_yaml, write_variant_bags
+
+GUESS = Nominal(k_R=5e8, c_R=3.5e4, mu=0.1, k_Z=5e8, c_Z=3.5e4, k_ZR=0.05)
+
+
+def test_sensor_noise_from_levitated_samples_ignores_the_orbit():
+    """sigma per axis from second differences: a 3 um orbit at 83 Hz beside 2 um of noise."""
+    rng = np.random.default_rng(1)
+    t = np.arange(20000) * 1e-4
+    orbit = 3e-6 * np.stack([np.cos(2 * np.pi * 83 * t), np.sin(2 * np.pi * 83 * t), 0 * t], axis=1)
+    sigma = np.array([2e-6, 1e-6, 5e-6])
+    samples = orbit + sigma * rng.standard_normal((len(t), 3))
+    samples[100:110] = np.nan  # a gap is passed over
+    samples[500, 2] = 1e-3  # and so is a spike
+    np.testing.assert_allclose(sensor_noise(samples), sigma, rtol=0.03)
+    np.testing.assert_allclose(sensor_noise(samples[:600]), sigma, rtol=0.12)  # what 3 bags of 0.02 s give
+    assert np.isnan(sensor_noise(samples[:15])).all()  # too few samples: not measured
+
+
+def test_hertz_force_and_guess_conversion():
+    law = ContactLaw("hertz", 1.5)
+    d, rate = 30e-6, 0.05
+    assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(
+        d**1.5 * (3e11 + 1.8e12 * rate), rel=1e-12
+    )
+    assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(d), jnp.asarray(-1.0))) == 0.0  # never pulls
+    assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(-1e-6), jnp.asarray(rate))) == 0.0  # out of contact
+    linear = ContactLaw()
+    assert float(normal_force(linear, 5e8, 3.5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(5e8 * d + 3.5e4 * rate)
+    # carried to another law, the guess gives the same spring and damping force at the reference deformation
+    d_ref = 20e-6
+    for target in (law, ContactLaw("hertz", 10 / 9)):
+        converted = convert_guess(GUESS, linear, target, d_ref)
+        for k, c in ((0, 1), (3, 4)):
+            spring = float(normal_force(target, converted[k], 0.0, jnp.asarray(d_ref), jnp.asarray(0.0)))
+            damper = float(normal_force(target, 0.0, converted[c], jnp.asarray(d_ref), jnp.asarray(rate)))
+            assert spring == pytest.approx(GUESS[k] * d_ref, rel=1e-12)
+            assert damper == pytest.approx(GUESS[c] * rate, rel=1e-12)
+        assert (converted.mu, converted.k_ZR) == (GUESS.mu, GUESS.k_ZR)
+        back = convert_guess(converted, target, linear, d_ref)
+        np.testing.assert_allclose(back, GUESS, rtol=1e-12)
+
+
+def test_standard_errors_of_a_known_quadratic():
+    """J = 2 NLL / N with NLL = x^T C^-1 x / 2, so its Hessian is 2 C^-1 / N: C comes back."""
+    covariance = np.array([[0.04, 0.018], [0.018, 0.01]])
+    n = 1000
+    hessian = 2.0 * np.linalg.inv(covariance) / n
+    sd, correlation = standard_errors(hessian, n)
+    np.testing.assert_allclose(sd, [0.2, 0.1], rtol=1e-12)
+    assert correlation[0, 1] == pytest.approx(0.9, rel=1e-12)
+    assert strongest_correlations(["a", "b"], correlation) == [("a", "b", pytest.approx(0.9))]
+
+
+def test_centres_are_placed_over_the_contact_samples():
+    rng = np.random.default_rng(2)
+    deformation = np.concatenate([rng.uniform(0, 60e-6, 500), -rng.uniform(0, 1e-4, 500)])  # half not in contact
+    velocity = rng.uniform(-0.08, 0.06, 1000)
+    T, scale = place_centres(deformation, velocity)
+    physical = T * scale
+    assert T.shape == (25, 2)
+    assert physical[:, 0].min() == 0.0 and physical[:, 0].max() == pytest.approx(np.percentile(deformation[:500], 99))
+    in_contact = velocity[:500]
+    assert physical[:, 1].min() == pytest.approx(np.percentile(in_contact, 1))
+    assert physical[:, 1].max() == pytest.approx(np.percentile(in_contact, 99))
+    np.testing.assert_allclose(np.diff(np.unique(T[:, 0])), 1.0)  # one normalised unit per grid step
+    assert place_centres(deformation[:10], velocity[:10]) is None
+
+
+# ------------------------------------------------------------------ two rigs of the family, end to end
+
+#: Peak force within this share of the truth on a held-out bag, after `touchdown train` with defaults.
+PEAK_TOLERANCE = 0.10
+
+
+@pytest.fixture(scope="module", params=["soft_bearing", "linear_spring"])
+def trained_rig(request, tmp_path_factory):
+    """A family rig: 4 simulated bags, `touchdown train` with defaults on 3 (from the reference guess),
+    `touchdown estimate` of the 4th with the coefficient file."""
+    v = variant(request.param)
+    out = tmp_path_factory.mktemp(v.name)
+    bags = write_variant_bags(v, out / "bags", n_drops=4, seed=0)
+    rig = write_rig_yaml(v, out / "bags", overwrite=True)
+    coeffs = out / "c.yaml"
+    assert main(["train", *map(str, bags[:3]), "--config", str(rig), "-o", str(coeffs)]) == 0
+    assert main(["estimate", str(bags[3]), "--config", str(rig), "--coeffs", str(coeffs), "-o", str(out / "est"), "--no-figures"]) == 0
+    summary = json.loads((out / "est" / "summary.json").read_text())
+    return v, rig, coeffs, summary
+
+
+def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
+    v, rig, coeffs, summary = trained_rig
+    document = yaml.safe_load(coeffs.read_text())
+    calibration = document["training"]["calibration"]
+    assert calibration["converged"] and document["training"]["pkbkr"]["converged"]
+    assert set(calibration["relative_standard_error"]) >= {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"}
+    assert len(calibration["candidates"]) == 3  # linear, hertz 1.5, hertz 10/9 were each fitted
+    # the stiffness moved far from the reference guess (5e8 N/m) to what the rig is
+    config = variant_config(v)
+    assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)
+    sigma = config.noise_rms
+    np.testing.assert_allclose(calibration["sensor_noise_m"], sigma, rtol=0.15)  # R from the levitated samples
+    bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
+    truth = bag["truth"]
+    assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth
+    assert abs(truth["peak_radial_force_error"]) < PEAK_TOLERANCE, truth
+    assert max(bag["rmse_displacement_m"]) < 1.2 * sigma
+
+
+def test_training_refuses_bags_without_touchdown_and_writes_nothing(tmp_path, trained_rig):
+    v, rig, _, _ = trained_rig
+    levitating = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
+    out = tmp_path / "c.yaml"
+    # a levitated-only bag: cut the record before the drop by a huge detection threshold
+    code = main(["train", str(levitating[0]), "--config", str(rig), "-p", "drop_detection.threshold:=0.01", "-o", str(out)])
+    assert code == EXIT_BAD_INPUT and not out.exists()
+    assert not list(tmp_path.glob("c.yaml*"))
+
+
+def test_training_that_cannot_converge_says_what_to_change(tmp_path, trained_rig, capsys):
+    v, rig, _, _ = trained_rig
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=6)
+    out = tmp_path / "c.yaml"
+    code = main(["train", str(bags[0]), "--config", str(rig), "-p", "training.calibration_steps:=2", "-o", str(out)])
+    assert code == EXIT_BAD_INPUT and not out.exists()
+    message = capsys.readouterr().err
+    assert "did not converge in 2 steps" in message and "training.calibration_steps" in message and str(bags[0]) in message
+
+
+def test_a_guess_that_makes_the_filter_diverge_names_the_bag(tmp_path, trained_rig, capsys):
+    v, rig, _, _ = trained_rig
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=7)
+    out = tmp_path / "c.yaml"
+    absurd = ["-p", "contact.k_Z:=1.0e+16", "-p", "contact.k_R:=1.0e+16", "-p", "training.contact_laws:=[linear]"]
+    code = main(["train", str(bags[0]), "--config", str(rig), *absurd, "-o", str(out)])
+    assert code == EXIT_BAD_INPUT and not out.exists()
+    message = capsys.readouterr().err
+    assert str(bags[0]) in message and "diverges" in message and "contact.*" in message
