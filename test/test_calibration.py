@@ -37,7 +37,7 @@ def test_sensor_noise_from_levitated_samples_ignores_the_orbit():
 
 
 def test_hertz_force_and_guess_conversion():
-    law = ContactLaw("hertz", 1.5)
+    law = ContactLaw.of("hertz", 1.5)
     d, rate = 30e-6, 0.05
     assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(
         d**1.5 * (3e11 + 1.8e12 * rate), rel=1e-12
@@ -48,7 +48,7 @@ def test_hertz_force_and_guess_conversion():
     assert float(normal_force(linear, 5e8, 3.5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(5e8 * d + 3.5e4 * rate)
     # carried to another law, the guess gives the same spring and damping force at the reference deformation
     d_ref = 20e-6
-    for target in (law, ContactLaw("hertz", 10 / 9)):
+    for target in (law, ContactLaw.of("hertz", 10 / 9)):
         converted = convert_guess(GUESS, linear, target, d_ref)
         for k, c in ((0, 1), (3, 4)):
             spring = float(normal_force(target, converted[k], 0.0, jnp.asarray(d_ref), jnp.asarray(0.0)))

@@ -14,7 +14,7 @@ from touchdown_ros.core.metrics import peak_errors_per_impact, relative_peak_err
 from touchdown_ros.io.config import Config
 from touchdown_ros.offline import BagEstimate, estimate_bag, estimator_for
 from touchdown_ros.progress import progress
-from touchdown_ros.train import Trainable, TrainingData, fit, load_training_data, make_objective
+from touchdown_ros.train import Trainable, fit, load_training_data, make_objective
 
 #: Force above which a sample counts as part of an impact, N (about a third of the rotor weight).
 IMPACT_THRESHOLD = 800.0
@@ -71,7 +71,7 @@ def cross_validate(
     folds = []
     for held_out in progress(range(len(bags)), len(bags), "leave-one-out training"):
         keep = [i for i in range(len(bags)) if i != held_out]
-        fold = TrainingData(tuple(data.paths[i] for i in keep), tuple(data.records[i] for i in keep))
+        fold = data.subset(keep)
         result = fit(config, fold, regularisation, full, steps, objective=objective, length=length, stream=_Quiet())
         folds.append(Trainable(result.coeffs, result.effects))
     return folds

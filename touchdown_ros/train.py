@@ -36,7 +36,7 @@ from touchdown_ros.core.calibration import (
 from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import detect_drop, to_grid
 from touchdown_ros.core.training import RECORDS, Batch, loss, make_batch, pad_records, sample_errors
-from touchdown_ros.core.types import PARAMETER_NAMES, Coefficients, FilterNoise, Model, Nominal
+from touchdown_ros.core.types import PARAMETER_NAMES, Coefficients, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.bags import read_conditions, read_displacement
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
@@ -243,6 +243,8 @@ def minimise(
 
 #: Loss reported for a trial point where the filter diverged (the optimiser steps back from it).
 DIVERGED_LOSS = 1.0e30
+#: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
+SCREEN_TOLERANCE = 1.0e-4
 
 
 def fit(
@@ -414,57 +416,62 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     def value_and_grad(theta: Stage1, guess: Array, law_model: Model):
         return batch_value_and_grad(theta, guess, law_model, batch)
 
-    tried = []
-    for law in settings.contact_laws:
+    template, unravel = ravel_pytree(Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(2), apply_scales(effects, scales, inverse=True)))
+    free = np.ones(template.shape, bool)
+    free[len(PARAMETER_NAMES) : len(PARAMETER_NAMES) + 2] = fit_q  # Q factors: nll only
+    full0 = np.asarray(template, dtype=float)
+
+    def expand(x: np.ndarray) -> np.ndarray:
+        full = full0.copy()
+        full[free] = x
+        return full
+
+    def describe(x: np.ndarray) -> str:
+        values = np.exp(np.asarray(unravel(expand(x)).log_f0))
+        return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
+
+    def problem(law: ContactLaw):
+        """(guess, objective of the free coordinates, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
-        guess_log = jnp.asarray(log_nominal(guess))
-        base = config.model()._replace(law=law)
-        start = Stage1(guess_log, jnp.zeros(2), apply_scales(effects, scales, inverse=True))
-        theta0, unravel = ravel_pytree(start)
-        free = np.ones(theta0.shape, bool)
-        free[len(PARAMETER_NAMES) : len(PARAMETER_NAMES) + 2] = fit_q
-        full0 = np.asarray(theta0, dtype=float)
+        guess_log, base = jnp.asarray(log_nominal(guess)), config.model()._replace(law=law)
 
-        def expand(x: np.ndarray, full0=full0, free=free) -> np.ndarray:
-            full = full0.copy()
-            full[free] = x
-            return full
-
-        def objective(x: np.ndarray, unravel=unravel, guess_log=guess_log, base=base):
+        def objective(x: np.ndarray):
             value, grad = value_and_grad(unravel(expand(x)), guess_log, base)
             return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[free]
 
-        def describe(x: np.ndarray, unravel=unravel) -> str:
-            theta = unravel(expand(x))
-            shown = "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, np.exp(np.asarray(theta.log_f0))))
-            return "  " + shown
+        x0 = full0.copy()
+        x0[: len(PARAMETER_NAMES)] = np.asarray(guess_log)
+        return guess, objective, x0[free]
 
+    # Screen every candidate law to a loose tolerance, then refine the best one.
+    screened = []
+    for law in settings.contact_laws:
+        guess, objective, x0 = problem(law)
         x, convergence = minimise(
-            objective, full0[free], settings.calibration_steps, settings.tolerance, f"calibrate {law.label}", stream, describe
+            objective, x0, settings.calibration_steps, max(settings.tolerance, SCREEN_TOLERANCE),
+            f"calibrate {law.label}", stream, describe,
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
-            model0, noise0 = stage1_model_and_noise(unravel(full0), base, noise, scales)
+            model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), config.model()._replace(law=law), noise, scales)
             losses = _per_bag_losses(model0, noise0, h, batch, kind)[: len(data.paths)]
             bad = [str(p) for p, v in zip(data.paths, losses) if not np.isfinite(v)] or [str(p) for p in data.paths]
             raise DivergedError(
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        tried.append((convergence.final_loss, law, guess, unravel(expand(x)), convergence, free, unravel, expand, x))
-
-    tried.sort(key=lambda t: t[0])
-    final_loss, law, guess, theta, convergence, free, unravel, expand, x = tried[0]
-    _require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
-    candidates = tuple(
-        {"law": t[1].label, "loss": t[0], "converged": t[4].converged, "steps": t[4].steps} for t in tried
+        screened.append((convergence.final_loss, law, x, convergence))
+    screened.sort(key=lambda t: t[0])
+    candidates = tuple({"law": law.label, "loss": loss, "steps": c.steps} for loss, law, _, c in screened)
+    law = screened[0][1]
+    if len(screened) > 1:
+        print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
+    guess, objective, _ = problem(law)
+    x, convergence = minimise(
+        objective, screened[0][2], settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
     )
-    if len(tried) > 1:
-        print(
-            "contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}",
-            file=stream,
-        )
-
-    hessian = _hessian(lambda y: value_and_grad(unravel(expand(y)), jnp.asarray(log_nominal(guess)), config.model()._replace(law=law)), x, free)
+    _require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
+    theta = unravel(expand(x))
+    hessian = _hessian(objective, x)
     sd, correlation = standard_errors(hessian, n_valid)
     names = [n for n, f in zip([*PARAMETER_NAMES, *Q_NAMES, *_effect_names(effects)], free) if f]
     relative_sd = {n: float(v) for n, v in zip(names, sd)}
@@ -489,18 +496,14 @@ def _effect_names(effects: Effects) -> list[str]:
     return [f"{e}.{k}" for e, p in effects.values().items() for k in p]
 
 
-def _hessian(value_and_grad: Callable, x: np.ndarray, free: np.ndarray, step: float = 1e-4) -> np.ndarray:
-    """Hessian of the stage-1 loss at x by central differences of its AD gradient (2 n gradients,
-    no extra compilation), in the free coordinates."""
-
-    def grad(y: np.ndarray) -> np.ndarray:
-        return np.asarray(ravel_pytree(jax.device_get(value_and_grad(y)[1]))[0], dtype=float)[free]
-
+def _hessian(objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4) -> np.ndarray:
+    """Hessian of a loss at x by central differences of its AD gradient (2 n gradients, no extra
+    compilation)."""
     columns = []
     for i in range(len(x)):
         e = np.zeros_like(x)
         e[i] = step
-        columns.append((grad(x + e) - grad(x - e)) / (2.0 * step))
+        columns.append((objective(x + e)[1] - objective(x - e)[1]) / (2.0 * step))
     return np.array(columns)
 
 

@@ -116,18 +116,13 @@ def stage1_objective(
     return data + prior / jnp.sum(batch.valid)
 
 
-def _damping_exponent(law: ContactLaw) -> float:
-    """Power of the deformation in the damping force: c d_dot (linear) or c d^n d_dot (hertz)."""
-    return 0.0 if law.name == "linear" else law.exponent
-
-
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
     """A guess of one contact law carried to another: the same spring force and the same damping
     force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the
     power of d in the damping force (0 linear, n hertz)."""
     d = reference_deformation
-    stiffness = d ** (source.exponent - target.exponent)
-    damping = d ** (_damping_exponent(source) - _damping_exponent(target))
+    stiffness = d ** (float(source.stiffness_exponent) - float(target.stiffness_exponent))
+    damping = d ** (float(source.damping_exponent) - float(target.damping_exponent))
     values = list(nominal)
     for i in _STIFFNESS:
         values[i] = values[i] * stiffness

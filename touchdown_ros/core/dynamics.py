@@ -28,13 +28,13 @@ def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
 
 
 def normal_force(law: ContactLaw, k: Array, c: Array, deformation: Array, rate: Array) -> Array:
-    """Normal contact force (N) at deformation d > 0 (m) and its rate (m/s), by the contact law:
-    k d + c d_dot (linear, eq. 6a / 8c) or d^n (k + c d_dot) floored at 0 (hertz); 0 out of contact."""
+    """Normal contact force (N) at deformation d > 0 (m) and its rate (m/s): k d^n + c d^m d_dot
+    (linear, eq. 6a / 8c: n = 1, m = 0; hertz: n = m, floored at 0); 0 out of contact."""
     in_contact = deformation > 0.0
-    if law.name == "linear":
-        return jnp.where(in_contact, k * deformation + c * rate, 0.0)
-    d_n = jnp.where(in_contact, deformation, 1.0) ** law.exponent
-    return jnp.where(in_contact, jnp.maximum(d_n * (k + c * rate), 0.0), 0.0)
+    d = jnp.where(in_contact, deformation, 1.0)
+    force = k * d**law.stiffness_exponent + c * d**law.damping_exponent * rate
+    force = jnp.where(law.floored > 0.0, jnp.maximum(force, 0.0), force)
+    return jnp.where(in_contact, force, 0.0)
 
 
 def contact_forces(model: Model, xi: Array) -> ContactForces:

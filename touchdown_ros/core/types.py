@@ -1,10 +1,8 @@
 """Typed containers of the estimator's model; all are JAX pytrees (NamedTuples), SI units."""
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -42,26 +40,40 @@ class Nominal(NamedTuple):
     k_ZR: float  # tangential force per axial contact force, 1
 
 
-@jax.tree_util.register_static
-@dataclass(frozen=True)
-class ContactLaw:
-    """Normal-force law of the contacts (a static choice: changing it recompiles).
+class ContactLaw(NamedTuple):
+    """Normal-force law of the contacts: F = k d^n + c d^m d_dot, floored at 0 where `floored`.
 
-    linear: F = k d + c d_dot (paper eq. 6a, 8c; k in N/m, c in N s/m).
-    hertz: F = d^n (k + c d_dot), floored at 0 (Hertz with Hunt-Crossley damping; k in
-    N/m^n, c in N s/m^(n+1)); n = 1.5 for balls, 10/9 for rollers.
+    linear (the paper's eq. 6a, 8c): n = 1, m = 0, not floored; k in N/m, c in N s/m.
+    hertz: n = m (1.5 for balls, 10/9 for rollers), floored (Hertz with Hunt-Crossley
+    damping, F = d^n (k + c d_dot), never pulling); k in N/m^n, c in N s/m^(n+1).
+    The exponents are traced numbers, so one compiled filter serves every law.
     """
 
-    name: str = "linear"
-    exponent: float = 1.0
+    stiffness_exponent: float = 1.0  # n
+    damping_exponent: float = 0.0  # m
+    floored: float = 0.0  # 1: the force never pulls; 0: as printed
 
-    def __post_init__(self):
-        if self.name not in CONTACT_LAWS:
-            raise ValueError(f"contact law must be one of {', '.join(CONTACT_LAWS)}, got {self.name!r}")
-        if self.name == "linear" and self.exponent != 1.0:
-            raise ValueError("the linear contact law has exponent 1")
-        if not 1.0 <= self.exponent <= 3.0:
-            raise ValueError(f"contact exponent must be in [1, 3], got {self.exponent!r}")
+    @staticmethod
+    def of(name: str, exponent: float | None = None) -> "ContactLaw":
+        """The law called `name` ("linear" or "hertz", exponent default 1.5); ValueError if unknown."""
+        if name == "linear":
+            if exponent not in (None, 1.0):
+                raise ValueError("the linear contact law has exponent 1")
+            return ContactLaw()
+        if name != "hertz":
+            raise ValueError(f"contact law must be one of {', '.join(CONTACT_LAWS)}, got {name!r}")
+        n = 1.5 if exponent is None else float(exponent)
+        if not 1.0 <= n <= 3.0:
+            raise ValueError(f"contact exponent must be in [1, 3], got {exponent!r}")
+        return ContactLaw(n, n, 1.0)
+
+    @property
+    def name(self) -> str:
+        return "linear" if float(self.damping_exponent) == 0.0 else "hertz"
+
+    @property
+    def exponent(self) -> float:
+        return float(self.stiffness_exponent)
 
     @property
     def label(self) -> str:

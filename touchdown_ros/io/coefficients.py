@@ -213,7 +213,7 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
     if not isinstance(contact, dict):
         raise CoefficientFileError(f"{path}: no 'contact' section (law and calibrated constants)")
     try:
-        law = ContactLaw(str(contact.get("law")), float(contact.get("exponent", 1.0)))
+        law = ContactLaw.of(str(contact.get("law")), float(contact.get("exponent", 1.0)))
     except (TypeError, ValueError) as error:
         raise CoefficientFileError(f"{path}: contact.law / contact.exponent: {error}") from None
     values = []

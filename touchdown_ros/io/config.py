@@ -357,15 +357,13 @@ def parse_contact_law(text: str) -> ContactLaw:
     name, _, exponent = str(text).partition(":")
     if name not in CONTACT_LAWS:
         raise ValueError(f"contact law {text!r}: use one of linear, hertz, hertz:<exponent>")
-    if name == "linear":
-        if exponent:
-            raise ValueError(f"contact law {text!r}: the linear law takes no exponent")
-        return ContactLaw()
+    if name == "linear" and exponent:
+        raise ValueError(f"contact law {text!r}: the linear law takes no exponent")
     try:
-        n = float(exponent) if exponent else 1.5
+        n = float(exponent) if exponent else None
     except ValueError:
         raise ValueError(f"contact law {text!r}: the exponent must be a number") from None
-    return ContactLaw("hertz", n)
+    return ContactLaw.of(name, n)
 
 
 def _contact_law(read: _Reader) -> ContactLaw:
@@ -373,7 +371,7 @@ def _contact_law(read: _Reader) -> ContactLaw:
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
     try:
-        return ContactLaw(name, exponent)
+        return ContactLaw.of(name, exponent)
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
