@@ -72,6 +72,26 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     )
 
 
+def contact_force_xyz(forces: ContactForces) -> Array:
+    """(F_x, F_y, F_z) of `forces`: the contact force on the rotor in sensor axes, N."""
+    return jnp.stack([forces.F_x, forces.F_y, forces.F_z])
+
+
+def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces, Array]:
+    """`contact_forces(model, xi)` and d (F_x, F_y, F_z) / d xi (3, 7), N per state unit.
+
+    Forward mode (`jax.jacfwd`, seven tangents in one pass, the forces as its by-product).
+    Out of contact the forces are constant zero, so the Jacobian is exactly zero.
+    """
+
+    def forces_xyz(state: Array) -> tuple[Array, ContactForces]:
+        forces = contact_forces(model, state)
+        return contact_force_xyz(forces), forces
+
+    jacobian, forces = jax.jacfwd(forces_xyz, has_aux=True)(xi)
+    return forces, jacobian
+
+
 def phi(model: Model, xi: Array) -> Array:
     """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]."""
     rig = model.rig
