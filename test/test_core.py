@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, step_with_jacobian, transition_jacobian
+from touchdown_ros.core.dynamics import (
+    contact_forces,
+    contact_forces_and_jacobian,
+    phi,
+    rk4_step,
+    step_with_jacobian,
+    transition_jacobian,
+)
 from touchdown_ros.core.ekf import Belief, ekf, predict, predict_with_rate, rts_smoother
 from touchdown_ros.core.estimate import GridError, detect_drop, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import rkhs_distance
@@ -149,6 +156,11 @@ def test_ad_jacobian_matches_central_differences(case):
     assert not np.allclose(J, np.eye(7))
 
 
+def force_xyz_jax(model, xi):
+    forces = contact_forces(model, xi)
+    return jnp.stack([forces.F_x, forces.F_y, forces.F_z])
+
+
 def known_covariance(seed: int) -> np.ndarray:
     """A full state covariance (7, 7): standard deviations of the filter's order, random correlations."""
     rng = np.random.default_rng(seed)
@@ -177,6 +189,9 @@ def test_force_std_is_finite_difference_jacobian_through_a_known_covariance(case
         J_fd[:, j] = (force_xyz(xi + step) - force_xyz(xi - step)) / (2 * scales[j])
     by_hand = J_fd @ P @ J_fd.T
 
+    _, J = contact_forces_and_jacobian(model, jnp.asarray(xi))
+    J_forward = jax.jacfwd(lambda s: jnp.asarray(force_xyz_jax(model, s)))(jnp.asarray(xi))
+    np.testing.assert_allclose(np.asarray(J), np.asarray(J_forward), rtol=1e-12, atol=1e-12 * np.max(np.abs(J_fd)))
     out = signals(model, Belief(jnp.asarray(xi)[None], jnp.asarray(P)[None]))
     std = force_std(np.asarray(out.force_cov))[0]
     np.testing.assert_allclose(np.asarray(out.force_xyz)[0], force_xyz(xi), rtol=1e-14, atol=0)

@@ -112,7 +112,7 @@ def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) 
 
 def signals(model: Model, states: Belief) -> SignalSet:
     """Accelerations (phi at the state) and contact forces, each with its covariance linearised
-    about the state (J P J^T, J by forward-mode automatic differentiation)."""
+    about the state (J P J^T, J by automatic differentiation)."""
 
     def one(mean: Array, cov: Array):
         acceleration = phi(model, mean)[4:]
