@@ -82,8 +82,9 @@ def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces,
 
     Reverse mode, as `phi_and_jacobian`: one forward pass (the forces) and three pullbacks, one
     per force component. Equal to `jax.jacfwd` of the stacked components to round-off, and
-    cheaper in the live node's chunk, where jacfwd (seven tangents) cost ~4x as much per row
-    (docs/node.md). Out of contact the forces are constant zero: the Jacobian is exactly zero.
+    cheaper in the live node's chunk, to which jacfwd (seven tangents) added three to four
+    times as much per row (docs/node.md). Out of contact the forces are constant zero: the
+    Jacobian is exactly zero.
     """
 
     def forces_xyz(state: Array) -> tuple[Array, ContactForces]:
