@@ -29,6 +29,66 @@ def estimate_dir(drop_bags, tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def filtered_dir(drop_bags, tmp_path_factory):
+    out = tmp_path_factory.mktemp("estimate_filtered")
+    assert main(["estimate", str(drop_bags / "exp_11"), "--filtered", "--no-figures", "-o", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def exp_11_estimate(drop_bags):
+    """Filter and smoother of exp_11 computed here, as `touchdown estimate` computes them."""
+    from touchdown_ros.offline import estimate_bag, estimator_for
+
+    return estimate_bag(CONFIG, drop_bags / "exp_11", estimator_for(CONFIG))
+
+
+@pytest.mark.parametrize("answer", ["smoothed", "filtered"])
+def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
+    answer, estimate_dir, filtered_dir, exp_11_estimate
+):
+    """The bag's /touchdown/* topics and the summary are of the smoother's estimate unless --filtered."""
+    from touchdown_ros.core.estimate import force_std
+    from touchdown_ros.core.metrics import relative_peak_error, rmse
+
+    out = estimate_dir if answer == "smoothed" else filtered_dir
+    estimate = exp_11_estimate.estimate
+    chosen, other = (estimate.smoothed, estimate.filtered) if answer == "smoothed" else (estimate.filtered, estimate.smoothed)
+    bag = out / "exp_11_estimate"
+
+    velocity = read_vector_topic(bag, "/touchdown/velocity")
+    np.testing.assert_array_equal(velocity.stamps_ns, estimate.stamps_ns)
+    np.testing.assert_allclose(velocity.values, np.asarray(chosen.state)[:, 4:], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(velocity.covariance, np.asarray(chosen.state_cov)[:, 4:, 4:], rtol=1e-12, atol=1e-24)
+    # the other estimate is far from it: filter and smoother differ by mm/s during the impacts
+    assert np.max(np.abs(velocity.values - np.asarray(other.state)[:, 4:])) > 1e-3
+    force = read_vector_topic(bag, "/touchdown/contact_force")
+    np.testing.assert_allclose(force.values, np.asarray(chosen.force_xyz), rtol=1e-12, atol=1e-9)
+    std = read_vector_topic(bag, "/touchdown/contact_force_std")
+    assert std.msgtype == "geometry_msgs/msg/Vector3Stamped" and std.frame_id == CONFIG.topics.frame_id
+    np.testing.assert_array_equal(std.stamps_ns, estimate.stamps_ns)
+    np.testing.assert_allclose(std.values, force_std(np.asarray(chosen.force_cov)), rtol=1e-12, atol=1e-9)
+    contact = np.asarray(chosen.axial_contact) | np.asarray(chosen.radial_contact)
+    assert np.all(std.values[contact].max(axis=1) > 0.0) and np.all(std.values[~contact] == 0.0)
+
+    document = json.loads((out / "summary.json").read_text())
+    assert document["estimate"] == answer
+    (summary,) = document["bags"].values()
+    assert summary["estimate"] == answer
+    assert summary["peak_axial_force_N"] == pytest.approx(float(np.max(chosen.F_z)), rel=1e-12)
+    assert summary["rmse_displacement_m"] == pytest.approx(rmse(chosen.state[:, :3], estimate.measured).tolist(), rel=1e-12)
+    truth = exp_11_estimate.truth
+    assert summary["truth"]["peak_axial_force_error"] == pytest.approx(
+        relative_peak_error(chosen.F_z, truth.contact_force[:, 2]), rel=1e-12
+    )
+    assert summary["truth"]["rmse_velocity_mps"] == pytest.approx(rmse(chosen.state[:, 4:], truth.velocity).tolist(), rel=1e-12)
+    assert summary["truth"]["rmse_velocity_smoothed_mps"] == pytest.approx(
+        rmse(estimate.smoothed.state[:, 4:], truth.velocity).tolist(), rel=1e-12
+    )
+    assert f"**{'RTS smoother' if answer == 'smoothed' else 'EKF'} ({answer})**" in (out / "summary.md").read_text()
+
+
 def test_help_of_every_subcommand():
     for command in ("simulate", "estimate", "train", "evaluate", "demo", "replay"):
         result = subprocess.run(
@@ -48,7 +108,8 @@ def test_simulated_bag_carries_displacement_and_truth(drop_bags):
 
 def test_estimate_writes_bag_summary_and_figures(estimate_dir):
     out_bag = estimate_dir / "exp_11_estimate"
-    for topic in ("/touchdown/velocity", "/touchdown/acceleration", "/touchdown/contact_force", "/touchdown/displacement"):
+    for topic in ("/touchdown/velocity", "/touchdown/acceleration", "/touchdown/contact_force", "/touchdown/displacement",
+                  "/touchdown/contact_force_std"):
         series = read_vector_topic(out_bag, topic)
         assert series is not None and len(series.stamps_ns) > 1400, topic
     summary = json.loads((estimate_dir / "summary.json").read_text())

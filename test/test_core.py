@@ -7,9 +7,16 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step, step_with_jacobian, transition_jacobian
+from touchdown_ros.core.dynamics import (
+    contact_forces,
+    contact_forces_and_jacobian,
+    phi,
+    rk4_step,
+    step_with_jacobian,
+    transition_jacobian,
+)
 from touchdown_ros.core.ekf import Belief, ekf, predict, predict_with_rate, rts_smoother
-from touchdown_ros.core.estimate import detect_drop, to_grid, GridError
+from touchdown_ros.core.estimate import GridError, detect_drop, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
 from touchdown_ros.io.config import load_config
@@ -147,6 +154,56 @@ def test_ad_jacobian_matches_central_differences(case):
         ) / (2 * scales[j])
     np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
     assert not np.allclose(J, np.eye(7))
+
+
+def force_xyz_jax(model, xi):
+    forces = contact_forces(model, xi)
+    return jnp.stack([forces.F_x, forces.F_y, forces.F_z])
+
+
+def known_covariance(seed: int) -> np.ndarray:
+    """A full state covariance (7, 7): standard deviations of the filter's order, random correlations."""
+    rng = np.random.default_rng(seed)
+    sd = np.array([2e-6, 2e-6, 2e-6, 1e-2, 3e-3, 3e-3, 3e-3])  # m, rad, m/s
+    A = rng.standard_normal((7, 7))
+    correlation = A @ A.T + 7 * np.eye(7)
+    d = 1 / np.sqrt(np.diag(correlation))
+    return sd[:, None] * (d[:, None] * correlation * d[None, :]) * sd[None, :]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_force_std_is_finite_difference_jacobian_through_a_known_covariance(case):
+    """sigma_F = sqrt(diag(J P J^T)) with J from central differences of contact_forces (F_x, F_y, F_z)."""
+    model = make_model(random_coeffs(2))
+    xi, P = np.array(CASES[case]), known_covariance(3)
+    scales = np.array([1e-10, 1e-10, 1e-10, 1e-6, 1e-7, 1e-7, 1e-7])
+
+    def force_xyz(state):
+        forces = contact_forces(model, jnp.asarray(state))
+        return np.array([forces.F_x, forces.F_y, forces.F_z], dtype=float)
+
+    J_fd = np.empty((3, 7))
+    for j in range(7):
+        step = np.zeros(7)
+        step[j] = scales[j]
+        J_fd[:, j] = (force_xyz(xi + step) - force_xyz(xi - step)) / (2 * scales[j])
+    by_hand = J_fd @ P @ J_fd.T
+
+    _, J = contact_forces_and_jacobian(model, jnp.asarray(xi))
+    J_forward = jax.jacfwd(lambda s: jnp.asarray(force_xyz_jax(model, s)))(jnp.asarray(xi))
+    np.testing.assert_allclose(np.asarray(J), np.asarray(J_forward), rtol=1e-12, atol=1e-12 * np.max(np.abs(J_fd)))
+    out = signals(model, Belief(jnp.asarray(xi)[None], jnp.asarray(P)[None]))
+    std = force_std(np.asarray(out.force_cov))[0]
+    np.testing.assert_allclose(np.asarray(out.force_xyz)[0], force_xyz(xi), rtol=1e-14, atol=0)
+    if case == "free":  # out of contact the force does not depend on the state: no uncertainty
+        assert np.all(np.asarray(out.force_cov) == 0.0) and np.all(std == 0.0)
+        return
+    np.testing.assert_allclose(np.asarray(out.force_cov)[0], by_hand, rtol=1e-6, atol=1e-9 * np.max(np.abs(by_hand)))
+    np.testing.assert_allclose(std, np.sqrt(np.diag(by_hand)), rtol=1e-6)
+    assert np.all(std > 1.0)  # N: a contact force is uncertain on every axis (friction couples z to the radial contact)
+    # linear in the state's standard deviation: a quarter of the covariance halves sigma_F
+    half = signals(model, Belief(jnp.asarray(xi)[None], 0.25 * jnp.asarray(P)[None]))
+    np.testing.assert_allclose(force_std(np.asarray(half.force_cov))[0], 0.5 * std, rtol=1e-12)
 
 
 @pytest.mark.parametrize("case", CASES)

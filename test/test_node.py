@@ -25,11 +25,13 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import PointCloud2
 
+from touchdown_ros.cli import main as touchdown
+from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import TopicSeries, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
-from touchdown_ros.offline import estimate_bag, estimate_topics, estimator_for
+from touchdown_ros.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
 from touchdown_ros.ros import messages
 from touchdown_ros.ros.diagnostics import LatencyHistogram
 from touchdown_ros.ros.replay import pace
@@ -190,12 +192,13 @@ def assert_close(actual: np.ndarray, expected: np.ndarray, what: str, rtol: floa
 # ---------------------------------------------------------------------------------------------- messages (no DDS)
 @pytest.mark.parametrize("frame_id", ["", "a", "amb1", "amb_sensor", "frame_of_8"])  # amb1: 4- and 8-alignment differ
 def test_raw_messages_match_rclpy_serialisation(frame_id):
-    from geometry_msgs.msg import AccelWithCovarianceStamped, TwistWithCovarianceStamped, WrenchStamped
+    from geometry_msgs.msg import AccelWithCovarianceStamped, TwistWithCovarianceStamped, Vector3Stamped, WrenchStamped
 
     rng = np.random.default_rng(0)
     stamps = np.array([1_700_000_000_123_456_789, 42], np.int64)
     for name, cls in [("PointStamped", PointStamped), ("TwistWithCovarianceStamped", TwistWithCovarianceStamped),
-                      ("AccelWithCovarianceStamped", AccelWithCovarianceStamped), ("WrenchStamped", WrenchStamped)]:
+                      ("AccelWithCovarianceStamped", AccelWithCovarianceStamped), ("WrenchStamped", WrenchStamped),
+                      ("Vector3Stamped", Vector3Stamped)]:
         count = messages.FLOAT64_FIELDS[name]
         values = rng.standard_normal((2, count))
         blobs = messages.encode_fixed(messages.FixedLayout(frame_id, count), stamps, values)
@@ -311,6 +314,19 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
     for bag_out in (recorded, recorded_batched):
         assert_recorded_estimates(bag_out, expected.estimate, source)
 
+    # The bag `touchdown estimate --filtered` writes holds what the node published, the force's std included.
+    offline = tmp_path / "offline"
+    assert touchdown(["estimate", str(bag), "--coeffs", str(coefficient_file), "--filtered", "--no-figures",
+                      "-o", str(offline)]) == 0
+    for series in estimate_topics(expected.estimate, CONFIG, FILTERED):
+        written = read_vector_topic(offline / "drop_estimate", series.topic)
+        live = read_vector_topic(recorded, series.topic)
+        assert written.msgtype == live.msgtype, series.topic
+        np.testing.assert_array_equal(live.stamps_ns, written.stamps_ns, err_msg=series.topic)
+        assert_close(live.values, written.values, f"{series.topic}: node vs touchdown estimate --filtered")
+    std = read_vector_topic(recorded, CONFIG.topics.contact_force_std)
+    assert std.msgtype == "geometry_msgs/msg/Vector3Stamped" and std.values.max() > 0.0
+
 
 def fifo_allowed() -> bool:
     """Whether a process here may switch itself to SCHED_FIFO (root or CAP_SYS_NICE / an rtprio limit)."""
@@ -319,8 +335,10 @@ def fifo_allowed() -> bool:
 
 
 def assert_recorded_estimates(bag: Path, estimate, source: str) -> None:
-    """The /touchdown/* topics recorded in `bag` equal the offline estimate (stamps exactly, values to 1e-9)."""
-    for series in estimate_topics(estimate, CONFIG):
+    """The /touchdown/* topics recorded in `bag` equal the offline filtered estimate (stamps exactly, values to 1e-9)."""
+    topics = estimate_topics(estimate, CONFIG, FILTERED)
+    assert CONFIG.topics.contact_force_std in [series.topic for series in topics]
+    for series in topics:
         got = read_vector_topic(bag, series.topic)
         assert got is not None and got.msgtype.endswith(series.msgtype), series.topic
         np.testing.assert_array_equal(got.stamps_ns, series.stamps_ns, err_msg=f"{series.topic} ({source})")
@@ -376,7 +394,8 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     filtered = expected.filtered
     for names, values in ((("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:]),
                           (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
-                          (("fx", "fy", "fz"), np.asarray(filtered.force_xyz))):
+                          (("fx", "fy", "fz"), np.asarray(filtered.force_xyz)),
+                          (("std_fx", "std_fy", "std_fz"), force_std(np.asarray(filtered.force_cov)))):
         assert_close(columns[:, [field[n] for n in names]], values, "/".join(names))
 
 

@@ -31,7 +31,7 @@ from touchdown_ros.io.config import load_config
 CONFIG = load_config()
 PERIOD_NS = int(round(CONFIG.sample_period * 1e9))
 T0_NS = 1_700_000_000_000_000_000
-SIGNALS = ("state", "state_cov", "acceleration", "acceleration_cov", "force_xyz", "F_n", "F_t", "F_z")
+SIGNALS = ("state", "state_cov", "acceleration", "acceleration_cov", "force_xyz", "force_cov", "F_n", "F_t", "F_z")
 CHUNKS = (8, 32, 128)  # small set: every path (padding, several chunks per push) at little compile time
 
 

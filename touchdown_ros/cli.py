@@ -100,7 +100,7 @@ def _simulate_variant(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from touchdown_ros.offline import estimate_bag, estimator_for, write_estimate_bag
+    from touchdown_ros.offline import FILTERED, SMOOTHED, estimate_bag, estimator_for, write_estimate_bag
     from touchdown_ros.report import plot_estimate, write_summaries
 
     config = _config(args)
@@ -115,14 +115,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
     for target in targets:
         _refuse_existing(target, args.overwrite)
+    answer = FILTERED if args.filtered else SMOOTHED
     results = []
     for bag, target in progress(zip(args.bags, targets), len(args.bags), "estimate"):
-        result = estimate_bag(config, bag, estimator)
+        result = estimate_bag(config, bag, estimator, answer=answer)
         write_estimate_bag(result, config, target, overwrite=args.overwrite)
         if not args.no_figures:
             plot_estimate(result, args.out / "figures" / Path(bag).name)
         results.append(result)
-    write_summaries(results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model"})
+    write_summaries(
+        results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model", "estimate": answer}
+    )
     print((args.out / "summary.md").read_text(), end="")
     print(f"estimates, summary.json/.md and figures in {args.out}")
     return 0
@@ -249,7 +252,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         argparse.Namespace(
             config=args.config, param=args.param, bags=[bags / "exp_11"],
             coeffs=None if args.quick else out / "coefficients.yaml",
-            out=out / "estimate", overwrite=True, no_figures=False,
+            out=out / "estimate", overwrite=True, no_figures=False, filtered=False,
         )
     )
     report = "" if args.quick else f"evaluation report in {out / 'evaluation'}, "
@@ -295,6 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", type=Path, required=True, help="output directory")
     p.add_argument("--overwrite", action="store_true", help="replace existing output bags")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument(
+        "--filtered", action="store_true",
+        help="write and summarise the EKF's estimate (what the live node publishes: each sample from the samples "
+        "up to it) instead of the RTS smoother's (each sample from the whole record, the default)",
+    )
     p.set_defaults(run=cmd_estimate)
 
     p = sub.add_parser("train", help="fit PKBKR coefficients (eq. 18) over drop-test bags")

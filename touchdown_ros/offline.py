@@ -8,15 +8,33 @@ from typing import Any
 import numpy as np
 
 from touchdown_ros.core.effects import Effects, gates_for
-from touchdown_ros.core.estimate import Estimate, Estimator, detect_drop, make_estimator, to_grid
+from touchdown_ros.core.estimate import Estimate, Estimator, SignalSet, detect_drop, force_std, make_estimator, to_grid
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
 from touchdown_ros.io.config import Config
 
 
+#: Which estimate the offline tools write: the RTS smoother's (uses the whole record, the default)
+#: or the EKF's (what the live node can compute: each sample from the samples up to it).
+SMOOTHED, FILTERED = "smoothed", "filtered"
+ANSWERS = (SMOOTHED, FILTERED)
+
+
 class NoDropError(ValueError):
     """The record shows no touchdown."""
+
+
+def check_answer(answer: str) -> str:
+    """`answer` if it is one of ANSWERS; ValueError otherwise."""
+    if answer not in ANSWERS:
+        raise ValueError(f"estimate {answer!r}: expected one of {', '.join(ANSWERS)}")
+    return answer
+
+
+def answer_of(estimate: Estimate, answer: str) -> SignalSet:
+    """The signals of `estimate` that `answer` (smoothed | filtered) names."""
+    return estimate.smoothed if check_answer(answer) == SMOOTHED else estimate.filtered
 
 
 @dataclass(frozen=True)
@@ -36,6 +54,12 @@ class BagEstimate:
     estimate: Estimate
     truth: AlignedTruth | None
     summary: dict[str, Any]
+    answer: str = SMOOTHED  # which of estimate.smoothed / .filtered is written and summarised
+
+    @property
+    def written(self) -> SignalSet:
+        """The signals written to the output bag and summarised (`answer`)."""
+        return answer_of(self.estimate, self.answer)
 
 
 def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Estimator:
@@ -55,9 +79,12 @@ def estimate_bag(
     estimator: Estimator,
     coeffs: Coefficients | None = None,
     effects: Effects | None = None,
+    answer: str = SMOOTHED,
 ) -> BagEstimate:
     """Read a bag's displacements, find the drop and estimate everything after it, with the
-    estimator's model or other coefficients / effects; effects gated by the bag's conditions."""
+    estimator's model or other coefficients / effects; effects gated by the bag's conditions.
+    The summary describes the `answer` (smoothed | filtered) estimate."""
+    check_answer(answer)
     path = Path(path)
     effects = estimator.model.effects if effects is None else effects
     gated = bag_effects(config, path, effects)
@@ -74,7 +101,7 @@ def estimate_bag(
         )
     estimate = estimator(grid.stamps_ns, grid.etas, onset, grid.missing, coeffs=coeffs, effects=gated)
     truth = _aligned_truth(path, config, estimate.stamps_ns)
-    return BagEstimate(path, estimate, truth, summarise(estimate, truth, config))
+    return BagEstimate(path, estimate, truth, summarise(estimate, truth, config, answer), answer)
 
 
 def _aligned_truth(path: Path, config: Config, stamps_ns: np.ndarray) -> AlignedTruth | None:
@@ -96,41 +123,77 @@ def _aligned_truth(path: Path, config: Config, stamps_ns: np.ndarray) -> Aligned
     return AlignedTruth(take(truth.velocity), take(truth.acceleration), take(truth.contact_force))
 
 
-def summarise(estimate: Estimate, truth: AlignedTruth | None, config: Config) -> dict[str, Any]:
-    """Per-bag figures: eq. 19 RMSE per axis, prediction error, filter health, errors against truth."""
-    filtered, smoothed = estimate.filtered, estimate.smoothed
-    radial_force = np.hypot(filtered.force_xyz[:, 0], filtered.force_xyz[:, 1])
+def summarise(estimate: Estimate, truth: AlignedTruth | None, config: Config, answer: str = SMOOTHED) -> dict[str, Any]:
+    """Per-bag figures of the `answer` estimate (smoothed | filtered): eq. 19 RMSE per axis, peak
+    forces and their 1-sigma, errors against truth; the filter's prediction error and health.
+
+    Keys with `_smoothed` / `_filtered` in their name are of that estimate whichever is written;
+    the one-step prediction error and the NIS are the filter's.
+    """
+    chosen, filtered, smoothed = answer_of(estimate, answer), estimate.filtered, estimate.smoothed
+    force, force_cov = np.asarray(chosen.force_xyz), np.asarray(chosen.force_cov)
+    radial_force = np.hypot(force[:, 0], force[:, 1])
+    peak_axial, peak_radial = int(np.argmax(force[:, 2])), int(np.argmax(radial_force))
     summary: dict[str, Any] = {
+        "estimate": answer,
         "samples": int(len(estimate.stamps_ns)),
         "missing_samples": int(estimate.missing),
         "onset_stamp_ns": int(estimate.stamps_ns[0]),
-        "rmse_displacement_m": rmse(filtered.state[:, :3], estimate.measured).tolist(),
+        "rmse_displacement_m": rmse(chosen.state[:, :3], estimate.measured).tolist(),
         "rmse_prediction_m": rmse(estimate.predicted_output, estimate.measured).tolist(),
         "mean_nis": float(np.nanmean(estimate.nis)),
-        "peak_axial_force_N": float(np.max(filtered.F_z)),
-        "peak_radial_force_N": float(np.max(radial_force)),
+        "peak_axial_force_N": float(force[peak_axial, 2]),
+        "peak_radial_force_N": float(radial_force[peak_radial]),
+        "peak_axial_force_std_N": float(force_std(force_cov[peak_axial])[2]),
+        "peak_radial_force_std_N": float(radial_force_std(force[peak_radial], force_cov[peak_radial])),
     }
     if truth is not None:
         true_radial = np.hypot(truth.contact_force[:, 0], truth.contact_force[:, 1])
         summary["truth"] = {
-            "rmse_velocity_mps": rmse(filtered.state[:, 4:], truth.velocity).tolist(),
+            "rmse_velocity_mps": rmse(chosen.state[:, 4:], truth.velocity).tolist(),
             "rmse_velocity_smoothed_mps": rmse(smoothed.state[:, 4:], truth.velocity).tolist(),
-            "rmse_acceleration_mps2": rmse(filtered.acceleration, truth.acceleration).tolist(),
-            "rmse_contact_force_N": rmse(filtered.force_xyz, truth.contact_force).tolist(),
+            "rmse_velocity_filtered_mps": rmse(filtered.state[:, 4:], truth.velocity).tolist(),
+            "rmse_acceleration_mps2": rmse(chosen.acceleration, truth.acceleration).tolist(),
+            "rmse_contact_force_N": rmse(force, truth.contact_force).tolist(),
             "rmse_contact_force_smoothed_N": rmse(smoothed.force_xyz, truth.contact_force).tolist(),
+            "rmse_contact_force_filtered_N": rmse(filtered.force_xyz, truth.contact_force).tolist(),
             "peak_axial_force_true_N": float(np.nanmax(truth.contact_force[:, 2])),
             "peak_radial_force_true_N": float(np.nanmax(true_radial)),
-            "peak_axial_force_error": relative_peak_error(filtered.F_z, truth.contact_force[:, 2]),
+            "peak_axial_force_error": relative_peak_error(chosen.F_z, truth.contact_force[:, 2]),
             "peak_radial_force_error": relative_peak_error(radial_force, true_radial),
+            "contact_force_within_2_std": within_two_std(force, force_cov, truth.contact_force),
         }
     return summary
 
 
-def estimate_topics(estimate: Estimate, config: Config) -> list[TopicSeries]:
-    """The `/touchdown/...` topics of an estimate, as the live node publishes them."""
+def radial_force_std(force_xyz: np.ndarray, force_cov: np.ndarray) -> np.ndarray:
+    """1-sigma (N) of the radial force |(F_x, F_y)| from the x/y block of the force covariance,
+    linearised along the force's direction; (...,) for force_xyz (..., 3), force_cov (..., 3, 3).
+    Where the radial force is zero, the largest standard deviation of the x/y block."""
+    xy, block = force_xyz[..., :2], force_cov[..., :2, :2]
+    magnitude = np.hypot(xy[..., 0], xy[..., 1])
+    direction = xy / np.where(magnitude > 0.0, magnitude, 1.0)[..., None]
+    along = np.einsum("...i,...ij,...j->...", direction, block, direction)
+    largest = np.linalg.eigvalsh(block)[..., -1]
+    return np.sqrt(np.maximum(np.where(magnitude > 0.0, along, largest), 0.0))
+
+
+def within_two_std(force_xyz: np.ndarray, force_cov: np.ndarray, true_force: np.ndarray) -> list[float]:
+    """Per sensor axis: the fraction of the samples where the estimate or the truth has a contact
+    force on that axis at which the truth lies within 2 sigma of the estimate (95 % if sigma told the
+    whole error); NaN where there are no such samples."""
+    error = np.abs(force_xyz - true_force)
+    involved = ((force_xyz != 0.0) | (true_force != 0.0)) & np.isfinite(true_force)
+    inside = error <= 2.0 * force_std(force_cov)
+    return [float(np.mean(inside[involved[:, i], i])) if involved[:, i].any() else float("nan") for i in range(3)]
+
+
+def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) -> list[TopicSeries]:
+    """The `/touchdown/...` topics of an estimate (smoothed or filtered), as the live node publishes
+    them (the node's are the filtered ones)."""
     topics, frame = config.topics, config.topics.frame_id
-    filtered, stamps = estimate.filtered, estimate.stamps_ns
-    state, cov = np.asarray(filtered.state), np.asarray(filtered.state_cov)
+    chosen, stamps = answer_of(estimate, answer), estimate.stamps_ns
+    state, cov = np.asarray(chosen.state), np.asarray(chosen.state_cov)
     return [
         TopicSeries(topics.displacement_estimate, "PointStamped", stamps, state[:, :3], frame_id=frame),
         TopicSeries(topics.velocity, "TwistWithCovarianceStamped", stamps, state[:, 4:], cov[:, 4:, 4:], frame_id=frame),
@@ -138,17 +201,20 @@ def estimate_topics(estimate: Estimate, config: Config) -> list[TopicSeries]:
             topics.acceleration,
             "AccelWithCovarianceStamped",
             stamps,
-            np.asarray(filtered.acceleration),
-            np.asarray(filtered.acceleration_cov),
+            np.asarray(chosen.acceleration),
+            np.asarray(chosen.acceleration_cov),
             frame_id=frame,
         ),
-        TopicSeries(topics.contact_force, "WrenchStamped", stamps, np.asarray(filtered.force_xyz), frame_id=frame),
+        TopicSeries(topics.contact_force, "WrenchStamped", stamps, np.asarray(chosen.force_xyz), frame_id=frame),
+        TopicSeries(
+            topics.contact_force_std, "Vector3Stamped", stamps, force_std(np.asarray(chosen.force_cov)), frame_id=frame
+        ),
     ]
 
 
 def write_estimate_bag(result: BagEstimate, config: Config, out: Path, overwrite: bool = False) -> Path:
-    """Write the estimate topics of one bag to a rosbag2 MCAP directory."""
-    write_bag(out, estimate_topics(result.estimate, config), overwrite=overwrite)
+    """Write the estimate topics of one bag (its `answer`: smoothed or filtered) to a rosbag2 MCAP directory."""
+    write_bag(out, estimate_topics(result.estimate, config, result.answer), overwrite=overwrite)
     return out
 
 

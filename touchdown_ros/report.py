@@ -11,7 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from touchdown_ros.offline import BagEstimate  # noqa: E402
+from touchdown_ros.core.estimate import force_std  # noqa: E402
+from touchdown_ros.offline import BagEstimate, radial_force_std  # noqa: E402
 
 AXES = ("x", "y", "z")
 
@@ -21,23 +22,29 @@ def _time(result: BagEstimate) -> np.ndarray:
     return (stamps - stamps[0]) * 1e-9
 
 
+#: How figures and summary.md name the written estimate.
+ANSWER_LABELS = {"smoothed": "RTS smoother", "filtered": "EKF"}
+
+
 def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
-    """Displacement (paper Fig. 2-4), velocity and contact force (Fig. 6) figures of one bag."""
+    """Displacement (paper Fig. 2-4), velocity and contact force (Fig. 6) figures of one bag; the
+    written estimate (`result.answer`), its contact force with a +-2 sigma band."""
     out.mkdir(parents=True, exist_ok=True)
     t = _time(result)
-    est, truth = result.estimate, result.truth
+    est, truth, written = result.estimate, result.truth, result.written
+    label = ANSWER_LABELS[result.answer]
     name = result.path.name
-    written = []
+    written_files = []
 
     fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
     for i, ax in enumerate(axes):
         ax.plot(t, est.measured[:, i] * 1e3, ".", ms=1.5, color="0.6", label=f"{AXES[i]} measured")
-        ax.plot(t, np.asarray(est.filtered.state)[:, i] * 1e3, lw=1, label=f"{AXES[i]} estimated (EKF)")
+        ax.plot(t, np.asarray(written.state)[:, i] * 1e3, lw=1, label=f"{AXES[i]} estimated ({label})")
         ax.set_ylabel(f"{AXES[i]} / mm")
         ax.legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time after drop onset / s")
     fig.suptitle(f"{name}: measured and estimated displacement")
-    written.append(_save(fig, out / "displacement.png"))
+    written_files.append(_save(fig, out / "displacement.png"))
 
     fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
     for i, ax in enumerate(axes):
@@ -49,28 +56,31 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
         ax.legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time after drop onset / s")
     fig.suptitle(f"{name}: velocity")
-    written.append(_save(fig, out / "velocity.png"))
+    written_files.append(_save(fig, out / "velocity.png"))
 
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    force = np.asarray(est.filtered.force_xyz)
-    panels = [("axial force F_z", force[:, 2], None), ("radial force |F_xy|", np.hypot(force[:, 0], force[:, 1]), None)]
-    if truth is not None:
-        panels = [
-            (label, value, true)
-            for (label, value, _), true in zip(
-                panels, (truth.contact_force[:, 2], np.hypot(truth.contact_force[:, 0], truth.contact_force[:, 1]))
-            )
-        ]
-    for ax, (label, value, true) in zip(axes, panels):
+    force, force_cov = np.asarray(written.force_xyz), np.asarray(written.force_cov)
+    panels = [
+        ("axial force F_z", force[:, 2], force_std(force_cov)[:, 2], None if truth is None else truth.contact_force[:, 2]),
+        (
+            "radial force |F_xy|",
+            np.hypot(force[:, 0], force[:, 1]),
+            radial_force_std(force, force_cov),
+            None if truth is None else np.hypot(truth.contact_force[:, 0], truth.contact_force[:, 1]),
+        ),
+    ]
+    for ax, (quantity, value, std, true) in zip(axes, panels):
+        ax.fill_between(t, (value - 2 * std) / 1e3, (value + 2 * std) / 1e3, color="C0", alpha=0.3, lw=0,
+                        label=f"{label} $\\pm 2\\sigma$")
         if true is not None:
             ax.plot(t, true / 1e3, color="k", lw=1.5, label="truth")
-        ax.plot(t, value / 1e3, lw=1, label="EKF")
-        ax.set_ylabel(f"{label} / kN")
+        ax.plot(t, value / 1e3, lw=1, color="C0", label=label)
+        ax.set_ylabel(f"{quantity} / kN")
         ax.legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time after drop onset / s")
-    fig.suptitle(f"{name}: contact force")
-    written.append(_save(fig, out / "contact_force.png"))
-    return written
+    fig.suptitle(f"{name}: contact force ({label}; band: $\\pm 2\\sigma$ linearised through the state covariance)")
+    written_files.append(_save(fig, out / "contact_force.png"))
+    return written_files
 
 
 def _save(fig, path: Path) -> Path:
@@ -81,11 +91,18 @@ def _save(fig, path: Path) -> Path:
 
 
 def summary_table(results: Sequence[BagEstimate]) -> str:
-    """Markdown table of the per-bag summaries."""
+    """Markdown: which estimate the figures are of, then a table of the per-bag summaries."""
+    answers = sorted({result.answer for result in results})
+    which = " and ".join(f"{ANSWER_LABELS[a]} ({a})" for a in answers)
+    intro = (
+        f"Estimate written and summarised: **{which}**. The RTS smoother uses the whole record; the EKF "
+        "(`--filtered`) only the samples up to each one, as the live node does. sigma: 1-sigma of the "
+        "contact force, linearised through the estimate's covariance.\n\n"
+    )
     header = (
-        "| bag | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | peak F_r / kN "
-        "| velocity RMSE / (mm/s) | force RMSE / N | peak F_z error |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
+        "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error |\n"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     rows = []
     for result in results:
@@ -99,10 +116,11 @@ def summary_table(results: Sequence[BagEstimate]) -> str:
         else:
             velocity = force = peak = "-"
         rows.append(
-            f"| {result.path.name} | {s['samples']} | {' | '.join(rms)} | {s['peak_axial_force_N'] / 1e3:.2f} "
+            f"| {result.path.name} | {result.answer} | {s['samples']} | {' | '.join(rms)} "
+            f"| {s['peak_axial_force_N'] / 1e3:.2f} | {s['peak_axial_force_std_N'] / 1e3:.2f} "
             f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} |"
         )
-    return header + "\n".join(rows) + "\n"
+    return intro + header + "\n".join(rows) + "\n"
 
 
 def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, Any] | None = None) -> None:

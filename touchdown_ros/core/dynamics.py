@@ -72,6 +72,30 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     )
 
 
+def contact_force_xyz(forces: ContactForces) -> Array:
+    """(F_x, F_y, F_z) of `forces`: the contact force on the rotor in sensor axes, N."""
+    return jnp.stack([forces.F_x, forces.F_y, forces.F_z])
+
+
+def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces, Array]:
+    """`contact_forces(model, xi)` and d (F_x, F_y, F_z) / d xi (3, 7), N per state unit.
+
+    Reverse mode, as `phi_and_jacobian`: one forward pass (the forces) and three pullbacks, one
+    per force component. Equal to `jax.jacfwd` of the stacked components to round-off, and
+    cheaper in the live node's chunk, to which jacfwd (seven tangents) added three to four
+    times as much per row (docs/node.md). Out of contact the forces are constant zero: the
+    Jacobian is exactly zero.
+    """
+
+    def forces_xyz(state: Array) -> tuple[Array, ContactForces]:
+        forces = contact_forces(model, state)
+        return contact_force_xyz(forces), forces
+
+    _, pullback, forces = jax.vjp(forces_xyz, xi, has_aux=True)
+    (jacobian,) = jax.vmap(pullback)(jnp.eye(3, dtype=xi.dtype))
+    return forces, jacobian
+
+
 def phi(model: Model, xi: Array) -> Array:
     """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]."""
     rig = model.rig

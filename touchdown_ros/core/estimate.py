@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces, phi
+from touchdown_ros.core.dynamics import contact_forces_and_jacobian, phi
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
@@ -33,6 +33,7 @@ class SignalSet(NamedTuple):
     F_t: Array
     F_z: Array
     force_xyz: Array  # (N, 3) contact force on the rotor in sensor axes, N
+    force_cov: Array  # (N, 3, 3) N^2, covariance of force_xyz: J P J^T, J = d force_xyz / d state
     radial_contact: Array  # (N,) bool
     axial_contact: Array
 
@@ -110,15 +111,16 @@ def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) 
 
 
 def signals(model: Model, states: Belief) -> SignalSet:
-    """Accelerations (phi at the state) with linearised covariance, and contact forces."""
+    """Accelerations (phi at the state) and contact forces, each with its covariance linearised
+    about the state (J P J^T, J by automatic differentiation)."""
 
     def one(mean: Array, cov: Array):
         acceleration = phi(model, mean)[4:]
         J = jax.jacfwd(lambda s: phi(model, s)[4:])(mean)
-        forces = contact_forces(model, mean)
-        return acceleration, J @ cov @ J.T, forces
+        forces, J_force = contact_forces_and_jacobian(model, mean)
+        return acceleration, J @ cov @ J.T, forces, J_force @ cov @ J_force.T
 
-    acceleration, acceleration_cov, forces = jax.vmap(one)(states.mean, states.cov)
+    acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)
     return SignalSet(
         state=states.mean,
         state_cov=states.cov,
@@ -128,9 +130,18 @@ def signals(model: Model, states: Belief) -> SignalSet:
         F_t=forces.F_t,
         F_z=forces.F_z,
         force_xyz=jnp.stack([forces.F_x, forces.F_y, forces.F_z], axis=-1),
+        force_cov=force_cov,
         radial_contact=forces.radial_contact,
         axial_contact=forces.axial_contact,
     )
+
+
+def force_std(force_cov: np.ndarray) -> np.ndarray:
+    """(N, 3) N: 1-sigma of the contact force per sensor axis, sqrt of the diagonal of force_cov (N, 3, 3).
+
+    Round-off can leave a diagonal element a hair below zero where it is zero: read as 0.
+    """
+    return np.sqrt(np.maximum(np.diagonal(np.asarray(force_cov), axis1=-2, axis2=-1), 0.0))
 
 
 Estimator = Callable[..., Estimate]

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces
+from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, predict_with_rate, update
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.types import FilterNoise, Model
@@ -170,6 +170,7 @@ class StreamOutput(NamedTuple):
     acceleration: np.ndarray  # (n, 3) m/s^2
     acceleration_cov: np.ndarray  # (n, 3, 3)
     force_xyz: np.ndarray  # (n, 3) contact force on the rotor, sensor axes, N
+    force_cov: np.ndarray  # (n, 3, 3) N^2, its covariance linearised about the state (`estimate.signals`)
     F_n: np.ndarray  # (n,) N
     F_t: np.ndarray
     F_z: np.ndarray
@@ -206,6 +207,7 @@ _LAYOUT = (
     ("acceleration", 3),
     ("acceleration_cov", 9),
     ("force_xyz", 3),
+    ("force_cov", 9),
     ("F_n", 1),
     ("F_t", 1),
     ("F_z", 1),
@@ -217,7 +219,7 @@ _LAYOUT = (
     ("used", 1),
 )
 _PACKED_WIDTH = sum(width for _, width in _LAYOUT)
-_SHAPES = {"state_cov": (7, 7), "acceleration_cov": (3, 3), "innovation_cov": (3, 3)}
+_SHAPES = {"state_cov": (7, 7), "acceleration_cov": (3, 3), "force_cov": (3, 3), "innovation_cov": (3, 3)}
 
 
 #: One packed row as a record: a field per column group, in the shapes of StreamOutput.
@@ -254,7 +256,8 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     holds the packed results of row k (`_LAYOUT`), row C the prior after the last real
     row. Each row is the EKF step (`update`, then `predict_with_rate`) and the filtered
     signals of `estimate.signals` (acceleration and its covariance from the first RK4
-    stage of the prediction, contact forces), innovation and NIS. Rows at and after the
+    stage of the prediction, contact forces and their covariance through the forces'
+    Jacobian), innovation and NIS. Rows at and after the
     count are padding (the compiled shape never changes): skipped, their result rows are
     NaN and the prior carried on is the one after the last real row. The results equal
     `make_estimator`'s to round-off (the acceleration Jacobian comes from reverse- instead
@@ -273,7 +276,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
         filtered, innovation, S, used = update(prior, eta, R)
         next_prior, _, rate, rate_jacobian = predict_with_rate(model, filtered, Q, sample_period)
         J = rate_jacobian[4:]
-        forces = contact_forces(model, filtered.mean)
+        forces, J_force = contact_forces_and_jacobian(model, filtered.mean)
         nis = innovation @ (_inverse_3x3(S) @ innovation)  # NaN where the sample was not used
         packed = jnp.concatenate(
             [
@@ -281,7 +284,8 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
                 filtered.cov.reshape(49),
                 rate[4:],
                 (J @ filtered.cov @ J.T).reshape(9),
-                jnp.stack([forces.F_x, forces.F_y, forces.F_z]),
+                contact_force_xyz(forces),
+                (J_force @ filtered.cov @ J_force.T).reshape(9),
                 jnp.stack([forces.F_n, forces.F_t, forces.F_z]),
                 jnp.stack([forces.radial_contact, forces.axial_contact]).astype(eta.dtype),
                 innovation,

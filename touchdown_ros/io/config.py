@@ -34,6 +34,7 @@ class Topics:
     velocity: str = "/touchdown/velocity"
     acceleration: str = "/touchdown/acceleration"
     contact_force: str = "/touchdown/contact_force"
+    contact_force_std: str = "/touchdown/contact_force_std"  # Vector3Stamped, N, 1-sigma per sensor axis
     displacement_estimate: str = "/touchdown/displacement"
     truth_velocity: str = "/truth/velocity"
     truth_acceleration: str = "/truth/acceleration"

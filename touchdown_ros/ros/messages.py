@@ -39,6 +39,7 @@ BATCH_INPUT_FIELDS = ("t", "x", "y", "z")
 BATCH_OUTPUT_FIELDS = (
     "t", "x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az", "fx", "fy", "fz", "fn", "ft", "nis",
     "var_vx", "var_vy", "var_vz", "var_ax", "var_ay", "var_az", "radial_contact", "axial_contact",
+    "std_fx", "std_fy", "std_fz",
 )  # fmt: skip
 
 

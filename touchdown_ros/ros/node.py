@@ -38,7 +38,13 @@ import numpy as np
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import AccelWithCovarianceStamped, PointStamped, TwistWithCovarianceStamped, WrenchStamped
+from geometry_msgs.msg import (
+    AccelWithCovarianceStamped,
+    PointStamped,
+    TwistWithCovarianceStamped,
+    Vector3Stamped,
+    WrenchStamped,
+)
 from rclpy import _rclpy_pybind11 as _rclpy
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -49,6 +55,7 @@ from rclpy.type_support import check_is_valid_msg_type
 from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.core.effects import gates_for
+from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.streaming import (
     StreamEvent,
     StreamingEstimator,
@@ -254,6 +261,7 @@ class EstimatorNode(Node):
             self.pub_twist = self.create_publisher(TwistWithCovarianceStamped, topics.velocity, out_qos)
             self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, topics.acceleration, out_qos)
             self.pub_wrench = self.create_publisher(WrenchStamped, topics.contact_force, out_qos)
+            self.pub_force_std = self.create_publisher(Vector3Stamped, topics.contact_force_std, out_qos)
             self._per_sample_outputs = self._encoders()
         if self.batched:
             self.pub_batch = self.create_publisher(PointCloud2, node.batch_output_topic, out_qos)
@@ -550,6 +558,7 @@ class EstimatorNode(Node):
                                    lambda out: with_covariance(out.acceleration, out.acceleration_cov))),
             (self.pub_wrench, fixed("WrenchStamped",
                                     lambda out: np.hstack([out.force_xyz, np.zeros((len(out.force_xyz), 3))]))),
+            (self.pub_force_std, fixed("Vector3Stamped", lambda out: force_std(out.force_cov))),
         ]
 
     def _batch_message(self, out: StreamOutput) -> PointCloud2:
@@ -559,7 +568,7 @@ class EstimatorNode(Node):
         acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
         columns = np.column_stack([
             t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
-            velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact,
+            velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact, force_std(out.force_cov),
         ])  # fmt: skip
         return messages.cloud(int(stamps[0]), self.frame_id, messages.BATCH_OUTPUT_FIELDS, columns)
 

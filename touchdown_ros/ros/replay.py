@@ -25,7 +25,13 @@ from typing import Sequence
 import numpy as np
 
 import rclpy
-from geometry_msgs.msg import AccelWithCovarianceStamped, PointStamped, TwistWithCovarianceStamped, WrenchStamped
+from geometry_msgs.msg import (
+    AccelWithCovarianceStamped,
+    PointStamped,
+    TwistWithCovarianceStamped,
+    Vector3Stamped,
+    WrenchStamped,
+)
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
@@ -40,6 +46,7 @@ ESTIMATE_TOPICS = (
     ("velocity", "TwistWithCovarianceStamped", TwistWithCovarianceStamped),
     ("acceleration", "AccelWithCovarianceStamped", AccelWithCovarianceStamped),
     ("contact_force", "WrenchStamped", WrenchStamped),
+    ("contact_force_std", "Vector3Stamped", Vector3Stamped),
 )
 
 
