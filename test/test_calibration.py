@@ -69,6 +69,10 @@ def test_standard_errors_of_a_known_quadratic():
     np.testing.assert_allclose(sd, [0.2, 0.1], rtol=1e-12)
     assert correlation[0, 1] == pytest.approx(0.9, rel=1e-12)
     assert strongest_correlations(["a", "b"], correlation) == [("a", "b", pytest.approx(0.9))]
+    # a flat direction the finite differences made slightly negative: the prior alone holds it
+    noisy = np.diag([2.0 / 0.04 / n, -1e-9])
+    sd, _ = standard_errors(noisy, n, prior_sd=np.array([np.inf, 1.6]))
+    np.testing.assert_allclose(sd, [0.2, 1.6], rtol=1e-9)
 
 
 def test_centres_are_placed_over_the_contact_samples():

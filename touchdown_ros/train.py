@@ -22,6 +22,7 @@ from touchdown_ros.core.calibration import (
     filtered_states,
     kernel_from_data,
     Q_NAMES,
+    Q_PRIOR_WIDTH,
     Stage1,
     apply_scales,
     convert_guess,
@@ -472,8 +473,9 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     _require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
     theta = unravel(expand(x))
     hessian = _hessian(objective, x)
-    sd, correlation = standard_errors(hessian, n_valid)
     names = [n for n, f in zip([*PARAMETER_NAMES, *Q_NAMES, *_effect_names(effects)], free) if f]
+    prior_sd = [settings.prior_width if n in PARAMETER_NAMES else Q_PRIOR_WIDTH if n in Q_NAMES else np.inf for n in names]
+    sd, correlation = standard_errors(hessian, n_valid, np.asarray(prior_sd))
     relative_sd = {n: float(v) for n, v in zip(names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, config.model()._replace(law=law), noise, scales)

@@ -151,13 +151,20 @@ def sensor_noise(levitated: np.ndarray) -> np.ndarray:
     return sigma
 
 
-def standard_errors(hessian: np.ndarray, n_valid: int) -> tuple[np.ndarray, np.ndarray]:
+def standard_errors(hessian: np.ndarray, n_valid: int, prior_sd: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Posterior sd and correlation matrix of stage-1 coordinates from the Hessian of J.
 
-    J is twice the negative log-posterior divided by N, so the posterior precision is N H / 2.
+    J is twice the negative log-posterior divided by N, so the posterior precision is N H / 2:
+    the data's part plus the prior's, diag(1 / prior_sd^2) (inf: no prior). A finite-difference
+    Hessian is noisy along flat directions and may even turn negative there; the data's part of
+    the precision is kept positive semi-definite (negative eigenvalues to 0) before the prior's
+    is added back, so no direction comes out flatter than the prior says.
     """
+    prior = np.zeros(len(hessian)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
     precision = 0.5 * n_valid * 0.5 * (hessian + hessian.T)
-    covariance = np.linalg.pinv(precision)
+    values, vectors = np.linalg.eigh(precision - np.diag(prior))
+    data = (vectors * np.clip(values, 0.0, None)) @ vectors.T
+    covariance = np.linalg.pinv(data + np.diag(prior), hermitian=True)
     sd = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.outer(sd, sd)
