@@ -179,7 +179,8 @@ def strongest_correlations(names: list[str], correlation: np.ndarray, count: int
 
 def place_centres(deformation: np.ndarray, velocity: np.ndarray, count: int = 5) -> tuple[np.ndarray, np.ndarray] | None:
     """A count x count grid of kernel centres over in-contact samples (deformation m > 0, velocity
-    m/s): deformation from 0 to its 99th percentile, velocity over its 1st-99th percentiles.
+    m/s): deformation from 0 to its largest value (the peaks are where the force matters most,
+    and they are the rarest samples), velocity over its 1st-99th percentiles.
 
     Returns (T (count^2, 2) in normalised units, scale (2,) m and m/s): one normalised unit is
     one grid spacing, so a width of 1 lets neighbouring centres overlap as on the YAML grid.
@@ -189,7 +190,7 @@ def place_centres(deformation: np.ndarray, velocity: np.ndarray, count: int = 5)
     if np.count_nonzero(keep) < 20:
         return None
     d, v = deformation[keep], velocity[keep]
-    d_top = float(np.percentile(d, 99.0))
+    d_top = float(np.max(d))
     v_low, v_high = (float(x) for x in np.percentile(v, [1.0, 99.0]))
     if v_high - v_low <= 0.0 or d_top <= 0.0:
         return None
