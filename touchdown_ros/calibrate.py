@@ -1,0 +1,197 @@
+"""Stage 1 of `touchdown train`: identify the rig's contact law, constants f0, Q and effect values
+from displacement-only bags (core.calibration), with standard errors from the loss curvature."""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, replace
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.flatten_util import ravel_pytree
+
+from touchdown_ros.core.calibration import (
+    HELD_BY_PRIOR,
+    Q_NAMES,
+    Q_PRIOR_WIDTH,
+    Stage1,
+    apply_scales,
+    convert_guess,
+    effect_scales,
+    log_nominal,
+    sensor_noise,
+    stage1_model_and_noise,
+    stage1_objective,
+    standard_errors,
+    strongest_correlations,
+)
+from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.training import Batch, sample_errors
+from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
+from touchdown_ros.io.config import Config
+from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, DivergedError, hessian, minimise, require_convergence
+from touchdown_ros.training_data import TrainingData, note_ungated, record_mesh, training_batch
+
+#: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
+SCREEN_TOLERANCE = 1.0e-4
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Stage 1's result: the rig's contact law, constants, filter noise and effect values."""
+
+    config: Config  # the rig with the calibrated law, f0 and noise (kernel: the YAML's until stage 2 places it)
+    effects: Effects
+    guess: Nominal  # the starting point, in the chosen law's units
+    relative_sd: dict[str, float]  # posterior sd of ln(value): ~ the relative standard error
+    held_by_prior: tuple[str, ...]  # parameters the data hardly inform (posterior sd >= HELD_BY_PRIOR prior sd)
+    correlations: tuple[tuple[str, str, float], ...]  # strongest correlations of the stage-1 estimates
+    convergence: Convergence
+    candidates: tuple[dict[str, Any], ...]  # every law tried: label, loss, converged
+    sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
+
+    def summary(self) -> dict[str, Any]:
+        """Plain data for the coefficient file."""
+        nominal = self.config.nominal
+        return {
+            "law": self.config.law.label,
+            "guess": {k: float(v) for k, v in self.guess._asdict().items()},
+            "calibrated": {k: float(v) for k, v in nominal._asdict().items()},
+            "relative_standard_error": {k: round(v, 6) for k, v in self.relative_sd.items()},
+            "held_by_prior": list(self.held_by_prior),
+            "strongest_correlations": [[a, b, round(r, 4)] for a, b, r in self.correlations],
+            "sensor_noise_m": [float(v) for v in self.sensor_noise],
+            "candidates": list(self.candidates),
+            **self.convergence.as_dict(),
+        }
+
+
+def measured_sensor_noise(config: Config, data: TrainingData, stream=sys.stderr) -> np.ndarray:
+    """(3,) sensor noise sd (m) per axis, pooled over the bags' levitated samples; the YAML's
+    filter.measurement_noise for an axis with too few of them (with a note)."""
+    levitated = [l for l in data.levitated if len(l) > 0]
+    sigma = sensor_noise(np.concatenate(levitated)) if levitated else np.full(3, np.nan)
+    fallback = np.sqrt(np.asarray(config.noise.measurement))
+    if np.isnan(sigma).any():
+        print(
+            "note: too few levitated samples before the drops to measure the sensor noise; "
+            "using filter.measurement_noise",
+            file=stream,
+        )
+    return np.where(np.isnan(sigma), fallback, sigma)
+
+
+def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str) -> np.ndarray:
+    return np.asarray(jax.jit(lambda b: jnp.sum(sample_errors(model, noise, h, b, kind), axis=1))(batch))
+
+
+def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibration:
+    """Stage 1 (core.calibration): for each candidate contact law, fit f0, the Q factors and the
+    effects' parameters from the YAML's guess; keep the law with the lowest loss."""
+    settings = config.training
+    sigma = measured_sensor_noise(config, data, stream)
+    print("sensor noise from the levitated samples: " + ", ".join(f"{a} {v * 1e6:.2f} um" for a, v in zip("xyz", sigma)), file=stream)
+    noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
+    h, kind, mesh = config.sample_period, settings.loss, record_mesh()
+    effects = config.effects
+    scales = effect_scales(effects)
+    batch = training_batch(config, data, effects)
+    note_ungated(effects, batch, stream)
+    n_valid = int(np.sum(np.asarray(batch.valid)))
+    fit_q = kind == "nll"
+
+    @jax.jit
+    def batch_value_and_grad(theta: Stage1, guess: Array, law_model: Model, records: Batch):
+        return jax.value_and_grad(stage1_objective)(
+            theta, guess, settings.prior_width, law_model, noise, scales, h, records, kind, mesh
+        )
+
+    def value_and_grad(theta: Stage1, guess: Array, law_model: Model):
+        return batch_value_and_grad(theta, guess, law_model, batch)
+
+    template, unravel = ravel_pytree(Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(2), apply_scales(effects, scales, inverse=True)))
+    # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
+    flags = Stage1(
+        jnp.ones(len(PARAMETER_NAMES)),
+        jnp.full(2, float(fit_q)),
+        Effects(effects.effects, tuple({k: 1.0 for k in p} for p in effects.params), (0.0,) * len(effects)),
+    )
+    free = np.asarray(ravel_pytree(flags)[0]) > 0.5
+    full0 = np.asarray(template, dtype=float)
+
+    def expand(x: np.ndarray) -> np.ndarray:
+        full = full0.copy()
+        full[free] = x
+        return full
+
+    def describe(x: np.ndarray) -> str:
+        values = np.exp(np.asarray(unravel(expand(x)).log_f0))
+        return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
+
+    def problem(law: ContactLaw):
+        """(guess, objective of the free coordinates, their start) for one contact law."""
+        guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
+        guess_log, base = jnp.asarray(log_nominal(guess)), config.model()._replace(law=law)
+
+        def objective(x: np.ndarray):
+            value, grad = value_and_grad(unravel(expand(x)), guess_log, base)
+            return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[free]
+
+        x0 = full0.copy()
+        x0[: len(PARAMETER_NAMES)] = np.asarray(guess_log)
+        return guess, objective, x0[free]
+
+    # Screen every candidate law to a loose tolerance, then refine the best one.
+    screened = []
+    for law in settings.contact_laws:
+        guess, objective, x0 = problem(law)
+        x, convergence = minimise(
+            objective, x0, settings.calibration_steps, max(settings.tolerance, SCREEN_TOLERANCE),
+            f"calibrate {law.label}", stream, describe,
+        )
+        if convergence.initial_loss >= DIVERGED_LOSS:
+            model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), config.model()._replace(law=law), noise, scales)
+            losses = _per_bag_losses(model0, noise0, h, batch, kind)[: len(data.paths)]
+            bad = [str(p) for p, v in zip(data.paths, losses) if not np.isfinite(v)] or [str(p) for p in data.paths]
+            raise DivergedError(
+                f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
+                "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
+            )
+        screened.append((convergence.final_loss, law, x, convergence))
+    screened.sort(key=lambda t: t[0])
+    candidates = tuple({"law": law.label, "loss": loss, "steps": c.steps} for loss, law, _, c in screened)
+    law = screened[0][1]
+    if len(screened) > 1:
+        print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
+    guess, objective, _ = problem(law)
+    x, convergence = minimise(
+        objective, screened[0][2], settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
+    )
+    require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
+    theta = unravel(expand(x))
+    curvature = hessian(objective, x)
+    names = [n for n, f in zip([*PARAMETER_NAMES, *Q_NAMES, *_effect_names(effects)], free) if f]
+    prior_sd = [settings.prior_width if n in PARAMETER_NAMES else Q_PRIOR_WIDTH if n in Q_NAMES else np.inf for n in names]
+    sd, correlation = standard_errors(curvature, n_valid, np.asarray(prior_sd))
+    relative_sd = {n: float(v) for n, v in zip(names, sd)}
+    held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
+    model, fitted_noise = stage1_model_and_noise(theta, config.model()._replace(law=law), noise, scales)
+    calibrated = config.calibrated(model.nominal, law, config.kernel, fitted_noise)
+    calibrated = replace(calibrated, nominal=Nominal(*(float(v) for v in model.nominal)))
+    return Calibration(
+        config=calibrated,
+        effects=model.effects,
+        guess=guess,
+        relative_sd=relative_sd,
+        held_by_prior=held,
+        correlations=tuple(strongest_correlations(names, correlation)),
+        convergence=convergence,
+        candidates=candidates,
+        sensor_noise=sigma,
+    )
+
+
+def _effect_names(effects: Effects) -> list[str]:
+    return [f"{e}.{k}" for e, p in effects.values().items() for k in p]

@@ -1,0 +1,142 @@
+"""Minimising a training loss: L-BFGS with progress and a record of how it stopped, and the
+curvature of a loss by differences of its gradient."""
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import scipy.optimize
+
+
+@dataclass(frozen=True)
+class Convergence:
+    """How one minimisation ended."""
+
+    converged: bool
+    reason: str  # the optimiser's own words
+    steps: int
+    initial_loss: float
+    final_loss: float
+    seconds: float
+    history: tuple[float, ...] = ()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "converged": self.converged,
+            "reason": self.reason,
+            "steps": self.steps,
+            "initial_loss": self.initial_loss,
+            "final_loss": self.final_loss,
+            "seconds": round(self.seconds, 2),
+        }
+
+
+class TrainingError(ValueError):
+    """Training cannot give a trustworthy coefficient file from these bags and settings."""
+
+
+class DivergedError(TrainingError):
+    """The filter diverges from the starting guess on a bag."""
+
+
+class NotConvergedError(TrainingError):
+    """A training stage reached its step cap before converging."""
+
+
+def require_convergence(convergence: Convergence, stage: str, paths: Sequence[Path], knob: str) -> None:
+    if not convergence.converged:
+        raise NotConvergedError(
+            f"{', '.join(map(str, paths))}: {stage} did not converge in {convergence.steps} steps "
+            f"({convergence.reason}); allow more with {knob}, or check that these bags are drops of this rig"
+        )
+
+
+#: Loss reported for a trial point where the filter diverged (the optimiser steps back from it).
+DIVERGED_LOSS = 1.0e30
+def minimise(
+    value_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    theta0: np.ndarray,
+    max_steps: int,
+    tolerance: float,
+    label: str,
+    stream=sys.stderr,
+    describe: Callable[[np.ndarray], str] = lambda theta: "",
+    on_step: Callable[[int, float, np.ndarray], None] | None = None,
+) -> tuple[np.ndarray, Convergence]:
+    """L-BFGS-B from theta0 until the loss changes by less than `tolerance` (relative) or the
+    projected gradient is below it, at most `max_steps` iterations; progress on `stream`.
+
+    A non-finite loss (the filter diverged at a trial point) counts as a very high one, so the
+    line search steps back instead of stopping.
+    """
+    start = time.perf_counter()
+    history: list[float] = []
+    last: dict[bytes, tuple[float, np.ndarray]] = {}  # L-BFGS asks again for the point it starts from
+
+    def fun(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        key = theta.tobytes()
+        if key not in last:
+            value, grad = value_and_grad(theta)
+            if not (np.isfinite(value) and np.all(np.isfinite(grad))):
+                value, grad = DIVERGED_LOSS, np.zeros_like(theta)
+            last.clear()
+            last[key] = float(value), np.asarray(grad, dtype=float)
+        return last[key]
+
+    def callback(intermediate_result) -> None:
+        history.append(float(intermediate_result.fun))
+        step = len(history)
+        elapsed = time.perf_counter() - start
+        print(
+            f"[{label} step {step}/<={max_steps}] loss {intermediate_result.fun:.7g}{describe(intermediate_result.x)}  "
+            f"{elapsed:.1f} s elapsed",
+            file=stream,
+            flush=True,
+        )
+        if on_step is not None:
+            on_step(step, float(intermediate_result.fun), intermediate_result.x)
+
+    initial_loss = fun(np.asarray(theta0, dtype=float))[0]
+    print(f"[{label} step 0] loss {initial_loss:.7g} (compiled in {time.perf_counter() - start:.1f} s)", file=stream, flush=True)
+    if max_steps == 0:
+        return theta0, Convergence(False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start)
+    result = scipy.optimize.minimize(
+        fun,
+        np.asarray(theta0, dtype=float),
+        jac=True,
+        method="L-BFGS-B",
+        callback=callback,
+        options={"maxiter": max_steps, "ftol": tolerance, "gtol": tolerance, "maxls": 40},
+    )
+    reason = str(result.message)
+    converged = bool(result.success) and result.fun < DIVERGED_LOSS
+    recent = np.asarray(history[-4:])
+    if not converged and "ABNORMAL" in reason and len(recent) == 4:
+        change = np.max(np.abs(np.diff(recent))) / max(abs(recent[-1]), 1.0)
+        if change < 10.0 * tolerance:
+            converged = True
+            reason += f" (the line search found no lower loss; the last steps changed it by {change:.1e}: at its noise floor)"
+    convergence = Convergence(
+        converged, reason, int(result.nit), initial_loss, float(result.fun), time.perf_counter() - start, tuple(history)
+    )
+    print(
+        f"[{label}] {'converged' if converged else 'NOT converged'} after {result.nit} steps: {reason}",
+        file=stream,
+        flush=True,
+    )
+    return np.asarray(result.x), convergence
+
+
+def hessian(objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4) -> np.ndarray:
+    """Hessian of a loss at x by central differences of its AD gradient (2 n gradients, no extra
+    compilation)."""
+    columns = []
+    for i in range(len(x)):
+        e = np.zeros_like(x)
+        e[i] = step
+        columns.append((objective(x + e)[1] - objective(x - e)[1]) / (2.0 * step))
+    return np.array(columns)
