@@ -39,7 +39,7 @@ def run_ours(bags: list[Path], steps: int) -> dict:
     start = time.perf_counter()
     config = load_config()
     with tempfile.TemporaryDirectory() as tmp:
-        result = train(config, bags, Path(tmp) / "c.yaml", max_steps=steps)
+        result = train(config, bags, Path(tmp) / "c.yaml", max_steps=steps).pkbkr
     return {
         "seconds": time.perf_counter() - start,
         "final_loss": result.final_loss,

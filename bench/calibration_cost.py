@@ -1,0 +1,74 @@
+"""Cost of `touchdown train` on the paper's 21-bag campaign: stage 1 alone and both stages to
+convergence, wall time including JAX compilation and peak memory, each run in its own process.
+
+    .venv/bin/python bench/calibration_cost.py [--bags DIR] [--runs 1] [--with COMMIT_CHECKOUT]
+
+Without `--bags` the campaign is simulated first. `--with DIR` adds, run by run in turn, the
+trainer of another checkout (e.g. `git worktree add /tmp/old <commit>`) with `--steps 40`, the
+earlier release's default, so the two are measured side by side on the same machine state.
+The campaign is trained as `make demo` does: the axial loader as a conditional effect.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+LOADER = ["-p", "effects.active:=[axial_load]", "-p", "effects.when.axial_load:=axial_load"]
+
+
+def timed(command: list[str], env: dict[str, str] | None = None, cwd: str | None = None) -> dict:
+    """Wall seconds, peak RSS (MiB, GNU time's %M) and exit code of one child process."""
+    start = time.perf_counter()
+    done = subprocess.run(["/usr/bin/time", "-f", "%M", *command], env=env, cwd=cwd, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True)
+    seconds = time.perf_counter() - start
+    lines = done.stderr.strip().splitlines()
+    return {"seconds": seconds, "peak_rss_MiB": int(lines[-1]) / 1024 if lines and lines[-1].isdigit() else None,
+            "exit": done.returncode, "message": lines[-2] if len(lines) > 1 else ""}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bags", type=Path)
+    parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument("--with", dest="other", type=Path, help="another checkout, trained with --steps 40")
+    args = parser.parse_args()
+    python = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        bags_dir = args.bags or Path(tmp) / "campaign"
+        if args.bags is None:
+            subprocess.run([python, "-m", "touchdown_ros.cli", "simulate", "--campaign", "-o", str(bags_dir)], check=True)
+        bags = [str(b) for b in sorted(bags_dir.glob("exp_*"))]
+        out = str(Path(tmp) / "c.yaml")
+        cases = {
+            "stage 1 only (--steps 0)": lambda: timed([python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out,
+                                                      "--overwrite", "--steps", "0", *LOADER]),
+            "stage 1 + stage 2 to convergence (defaults)": lambda: timed(
+                [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER]),
+        }
+        if args.other is not None:
+            env = dict(os.environ, PYTHONPATH=str(args.other))
+            cases[f"{args.other}: 40 steps (its default)"] = lambda: timed(
+                [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", "--steps", "40", *LOADER],
+                env=env, cwd=str(args.other))
+        results: dict[str, list[dict]] = {name: [] for name in cases}
+        for _ in range(args.runs):
+            for name, run in cases.items():  # in turn, so a drift of the machine hits all alike
+                results[name].append(run())
+                print(name, json.dumps(results[name][-1]), file=sys.stderr, flush=True)
+    print("| run | wall time / s (median) | peak memory / MiB | exit |\n|---|---:|---:|---:|")
+    for name, runs in results.items():
+        print(f"| {name} | {statistics.median(r['seconds'] for r in runs):.1f} | "
+              f"{max(r['peak_rss_MiB'] or 0 for r in runs):.0f} | {','.join(str(r['exit']) for r in runs)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
