@@ -49,7 +49,7 @@ class Calibration:
     held_by_prior: tuple[str, ...]  # parameters the data hardly inform (posterior sd >= HELD_BY_PRIOR prior sd)
     correlations: tuple[tuple[str, str, float], ...]  # strongest correlations of the stage-1 estimates
     convergence: Convergence
-    candidates: tuple[dict[str, Any], ...]  # every law tried: label, loss, converged
+    candidates: tuple[dict[str, Any], ...]  # every law screened: label, loss, steps (lowest loss first)
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
 
     def summary(self) -> dict[str, Any]:
@@ -71,7 +71,7 @@ class Calibration:
 def measured_sensor_noise(config: Config, data: TrainingData, stream=sys.stderr) -> np.ndarray:
     """(3,) sensor noise sd (m) per axis, pooled over the bags' levitated samples; the YAML's
     filter.measurement_noise for an axis with too few of them (with a note)."""
-    levitated = [l for l in data.levitated if len(l) > 0]
+    levitated = [samples for samples in data.levitated if len(samples) > 0]
     sigma = sensor_noise(np.concatenate(levitated)) if levitated else np.full(3, np.nan)
     fallback = np.sqrt(np.asarray(config.noise.measurement))
     if np.isnan(sigma).any():
