@@ -154,8 +154,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         load_coefficients(args.init, config)
     for bag in args.bags:  # every bag is checked before the work
         check_training_bag(config, bag)
-    checkpoint = args.out.with_name(args.out.name + ".checkpoint")
-    with OutputGuard([args.out, checkpoint], keep_on_interrupt=[checkpoint]):
+    # the checkpoint stays when training stops (--resume continues from it); the file is written at the end, atomically
+    with OutputGuard([args.out]):
         outcome = train(
             config,
             args.bags,
@@ -411,6 +411,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return args.run(args)
     except (ConfigError, BagError, CoefficientFileError, FileExistsError, FileNotFoundError, ValueError) as error:
         print(f"touchdown {args.command}: error: {_one_line(error)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ArithmeticError as error:  # a filter that diverged on data the checks let through
+        print(f"touchdown {args.command}: error: numerical failure ({type(error).__name__}: {_one_line(error)}); "
+              "check the bags with touchdown estimate first", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as error:  # writing the output: read-only, disk full, a file where a directory goes
         where = f"{error.filename}: " if getattr(error, "filename", None) and not isinstance(error, OutputError) else ""
