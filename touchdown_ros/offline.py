@@ -102,7 +102,25 @@ def estimate_bag(
         gated = None  # the compiled model as it is
     series = read_displacement(path, config.topics.displacement)
     record = split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
-    segment_index, onset = find_onset(record, config, path)
+    estimate, restarts = estimate_record(config, record, estimator, path, coeffs=coeffs, effects=gated)
+    truth = _aligned_truth(path, config, estimate.stamps_ns)
+    summary = summarise(estimate, truth, config, answer)
+    summary["input"] = input_summary(record, restarts)
+    return BagEstimate(path, estimate, truth, summary, answer, restarts)
+
+
+def estimate_record(
+    config: Config,
+    record: RecordInput,
+    estimator: Estimator,
+    source: str | Path = "",
+    coeffs: Coefficients | None = None,
+    effects: Effects | None = None,
+) -> tuple[Estimate, tuple[int, ...]]:
+    """A record under the input policy estimated from its drop onset on: each segment after a long
+    gap, clock jump or run of unusable samples by a filter started afresh from its own data (as the
+    live node restarts it). Returns the joined estimate and the rows where the filter restarted."""
+    segment_index, onset = find_onset(record, config, Path(source))
     parts = []
     for k in range(segment_index, len(record.segments)):
         segment = record.segments[k]
@@ -110,13 +128,9 @@ def estimate_bag(
         if not np.isfinite(segment.etas[start:]).all(axis=1).any():
             continue  # nothing usable to start a filter from
         missing = int(np.count_nonzero(~np.isfinite(segment.etas[start:]).all(axis=1)))
-        parts.append(estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=gated))
-    estimate = concatenate_estimates(parts)
+        parts.append(estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects))
     restarts = tuple(int(r) for r in np.cumsum([len(p.stamps_ns) for p in parts])[:-1])
-    truth = _aligned_truth(path, config, estimate.stamps_ns)
-    summary = summarise(estimate, truth, config, answer)
-    summary["input"] = input_summary(record, restarts)
-    return BagEstimate(path, estimate, truth, summary, answer, restarts)
+    return concatenate_estimates(parts), restarts
 
 
 def check_bag(config: Config, path: str | Path) -> None:

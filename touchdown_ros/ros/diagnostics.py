@@ -26,7 +26,8 @@ NIS_WARN = 16.27
 #: Counts whose increase in a period makes the input status WARN.
 INPUT_PROBLEMS = (
     "duplicate", "out_of_order", "off_grid", "non_finite", "saturated", "millimetre",
-    "gaps", "missing_samples", "clock_jump_forward", "clock_jump_backward", "resyncs",
+    "gaps", "missing_samples", "long_gaps", "dropped_rows", "filter_restarts", "reference_refused",
+    "clock_jump_forward", "clock_jump_backward", "resyncs",
 )  # fmt: skip
 
 
@@ -164,6 +165,10 @@ def statuses(
                 **{f"rejected.{k}": v for k, v in counts.rejected.items()},
                 "gaps": counts.gaps,
                 "missing_samples": counts.missing_samples,
+                "long_gaps": counts.long_gaps,
+                "dropped_rows": counts.dropped_rows,
+                "filter_restarts": counts.filter_restarts,
+                "reference_refused": counts.reference_refused,
                 "clock_jump_forward": counts.clock_jump_forward,
                 "clock_jump_backward": counts.clock_jump_backward,
                 "resyncs": counts.resyncs,
@@ -253,6 +258,7 @@ def statuses(
                     "peak_radial_force_N": summary.peak_radial_force,
                     "mean_nis": summary.mean_nis,
                     "end_reason": summary.end_reason,
+                    "filter_restarts": summary.filter_restarts,
                 },
                 hardware_id,
             )
