@@ -165,11 +165,13 @@ def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, in
     comes from the first segment's window, which must be clean (`window_is_clean`)."""
     first = record.segments[0]
     window = max(1, int(round(config.drop.levitated_window / config.sample_period)))
-    if not window_is_clean(first.etas[:window]) or len(first.etas) < window:
-        usable = float(np.mean(np.isfinite(first.etas[:window]).all(axis=1)))
+    if not window_is_clean(first.etas[:window], config.drop.threshold) or len(first.etas) < window:
+        usable = np.isfinite(first.etas[:window]).all(axis=1)
+        spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
         raise NoDropError(
-            f"{path}: the levitated window (first {config.drop.levitated_window * 1e3:g} ms) has only "
-            f"{100 * usable:.0f} % usable samples (saturated, pinned, missing or in other units): no levitated reference"
+            f"{path}: the levitated window (first {config.drop.levitated_window * 1e3:g} ms) is not clean: "
+            f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
+            f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
         )
     reference = levitated_mean_z(first.etas[:, 2], config.sample_period, config.drop.levitated_window)
     for k, segment in enumerate(record.segments):

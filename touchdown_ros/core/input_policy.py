@@ -25,6 +25,9 @@ import numpy as np
 
 #: Fraction of the levitated window's rows that must hold usable values for a levitated reference.
 CLEAN_WINDOW_FRACTION = 0.9
+#: The levitated window's z may spread (standard deviation) at most this fraction of the drop threshold:
+#: beyond it the threshold would be crossed by the spread alone (a stream in other units, or not levitated).
+WINDOW_SPREAD_OF_THRESHOLD = 1.0 / 3.0
 #: Kinds of hole between two consecutive samples.
 CONTIGUOUS, BRIDGED, GAP, CLOCK_JUMP_FORWARD, CLOCK_JUMP_BACKWARD = range(5)
 
@@ -148,10 +151,15 @@ def bridge_rows(usable: np.ndarray, policy: InputPolicy, carried: int = 0) -> Ro
     return RowRuns(keep, restart, int(runs[-1]) if len(runs) else carried)
 
 
-def window_is_clean(etas: np.ndarray) -> bool:
-    """Whether a levitated window (rows with NaN where refused or missing) may give the reference."""
+def window_is_clean(etas: np.ndarray, drop_threshold: float) -> bool:
+    """Whether a levitated window (rows with NaN where refused or missing) may give the reference: at
+    least CLEAN_WINDOW_FRACTION usable rows, and z spread below WINDOW_SPREAD_OF_THRESHOLD x the drop
+    threshold (m)."""
     etas = np.asarray(etas).reshape(-1, 3)
-    return len(etas) > 0 and float(np.mean(np.isfinite(etas).all(axis=1))) >= CLEAN_WINDOW_FRACTION
+    usable = np.isfinite(etas).all(axis=1)
+    if len(etas) == 0 or float(np.mean(usable)) < CLEAN_WINDOW_FRACTION:
+        return False
+    return float(np.std(etas[usable, 2])) <= WINDOW_SPREAD_OF_THRESHOLD * drop_threshold
 
 
 class Segment(NamedTuple):

@@ -623,9 +623,10 @@ class StreamingEstimator:
         buffer_etas = np.concatenate([self._buffer_etas, etas])
         while self._reference is None and len(buffer_etas) >= settings.window_samples:
             window = buffer_etas[: settings.window_samples]
-            if not window_is_clean(window):  # saturated, pinned, millimetres or missing: no reference from it
+            if not window_is_clean(window, settings.drop_threshold):  # saturated, pinned, other units, missing
                 self.counts.reference_refused += 1
-                drop = int(np.flatnonzero(~np.isfinite(window).all(axis=1))[-1]) + 1
+                unusable = np.flatnonzero(~np.isfinite(window).all(axis=1))
+                drop = int(unusable[-1]) + 1 if unusable.size else max(1, settings.window_samples // 2)
                 buffer_stamps, buffer_etas = buffer_stamps[drop:], buffer_etas[drop:]
                 self._buffer_first += drop
                 continue
