@@ -535,8 +535,8 @@ class StreamingEstimator:
                 return
             jump_s = (int(s[stop]) - (self._origin + before[stop] * self._period_ns)) / 1e9
             if back_jump[stop]:
-                self.counts.clock_jump_backward += 1
-                self._restart("clock_jump", int(s[stop]), f"stamp jumped back by {-jump_s:.4g} s (more than max_gap)")
+                self.counts.clock_jump_backward += 1  # the stream starts over (a replay, a restarted sensor)
+                self._reset("clock_jump", int(s[stop]), f"stamp jumped back by {-jump_s:.4g} s (more than max_gap)")
             elif forward_jump[stop]:
                 self.counts.clock_jump_forward += 1
                 self._restart("clock_jump", int(s[stop]), f"stamp jumped forward by {jump_s:.4g} s (more than max_gap)")
