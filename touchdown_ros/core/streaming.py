@@ -381,9 +381,10 @@ class _Touchdown:
         self.axial_impacts += _rising_edges(out.axial_contact, self.last_axial)
         self.radial_impacts += _rising_edges(out.radial_contact, self.last_radial)
         self.last_axial, self.last_radial = bool(out.axial_contact[-1]), bool(out.radial_contact[-1])
-        self.peak_axial = max(self.peak_axial, float(out.F_z.max()))
-        fx, fy = out.force_xyz[:, 0], out.force_xyz[:, 1]
-        self.peak_radial = max(self.peak_radial, math.sqrt(float((fx * fx + fy * fy).max())))
+        if n_used:  # predict-only rows (gaps, refused values) are left out of the peaks, as offline
+            self.peak_axial = max(self.peak_axial, float(out.F_z[used].max()))
+            fx, fy = out.force_xyz[used, 0], out.force_xyz[used, 1]
+            self.peak_radial = max(self.peak_radial, math.sqrt(float((fx * fx + fy * fy).max())))
         if n_used:  # NIS is NaN exactly where the measurement was not used
             self.nis_sum += float(out.nis[used].sum())
             self.nis_count += n_used
@@ -396,8 +397,8 @@ class _Touchdown:
             missing_samples=self.missing,
             axial_impacts=self.axial_impacts,
             radial_impacts=self.radial_impacts,
-            peak_axial_force=self.peak_axial if self.samples else math.nan,
-            peak_radial_force=self.peak_radial if self.samples else math.nan,
+            peak_axial_force=self.peak_axial if self.nis_count else math.nan,
+            peak_radial_force=self.peak_radial if self.nis_count else math.nan,
             mean_nis=self.nis_sum / self.nis_count if self.nis_count else math.nan,
             end_reason=end_reason,
             filter_restarts=self.restarts,
