@@ -15,7 +15,7 @@ import yaml
 
 from touchdown_ros.cli import main
 from touchdown_ros.core.types import Coefficients
-from touchdown_ros.io.bags import TopicSeries, read_displacement, read_truth, write_bag
+from touchdown_ros.io.bags import TopicSeries, read_displacement, read_truth, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config
 
@@ -149,6 +149,8 @@ def test_a_short_gap_is_bridged_flagged_and_left_out_of_the_peaks(exp_11, tmp_pa
     assert summary["input"]["bridged_gaps"] == 1 and summary["input"]["filter_restarts"] == 0
     assert summary["predicted_only_samples"] == 10
     assert "10 predict-only rows" in (tmp_path / "out" / "summary.md").read_text()
+    marked = read_vector_topic(tmp_path / "out" / "gap_estimate", "/touchdown/predicted_only")
+    assert len(marked.stamps_ns) == 10 and (marked.values == 1.0).all()
 
 
 def test_z_saturated_for_100_samples_is_treated_as_missing(exp_11, tmp_path):
@@ -194,6 +196,20 @@ def test_train_refuses_a_clock_jump_naming_bag_and_sample_and_leaves_nothing(exp
     assert str(bag) in error and f"sample {start}" in error and "Traceback" not in error
     assert len(error.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["jump"]
+
+
+def test_train_refuses_a_long_saturated_stretch_before_the_work(exp_11, tmp_path, capsys):
+    start = onset_sample(exp_11) + 100
+
+    def saturate(stamps, xyz):
+        xyz[start : start + 100, 2] = -CONFIG.node.sensor_range
+        return stamps, xyz, np.ones(len(stamps), bool)
+
+    bag = damaged(exp_11, tmp_path / "saturated", saturate)
+    assert main(["train", str(bag), "-o", str(tmp_path / "c.yaml")]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert str(bag) in error and "without a usable value" in error and len(error.strip().splitlines()) == 1
+    assert not (tmp_path / "c.yaml").exists()
 
 
 def test_off_grid_and_sample_period_errors_name_the_file(exp_11, tmp_path, capsys):

@@ -244,7 +244,14 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0)
     if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100:
         raise ValueError("--k must be >= 1, --force-walk > 0 and --threshold in (0, 100)")
-    run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
+    from touchdown_ros.offline import check_bag
+
+    check_writable(args.out, directory=True)
+    for bag in args.bags:  # every bag is checked before the work
+        check_bag(config, bag)
+    names = ("diagnosis.md", "diagnosis.json", "errors.csv", "ranking.csv", "figures")
+    with OutputGuard([args.out, *(args.out / name for name in names)]):
+        run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
     print((args.out / "diagnosis.md").read_text(), end="")
     print(f"diagnosis.md/.json, errors.csv, ranking.csv and figures in {args.out}")
     return 0

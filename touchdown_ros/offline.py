@@ -325,9 +325,25 @@ def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) 
     ]
 
 
+#: Offline output topic marking the rows without a usable measurement (input policy): Vector3Stamped, one
+#: message per such row, 1.0 on each axis that had no usable value (the live node's batched output has `nis`
+#: NaN there instead).
+PREDICTED_ONLY_TOPIC = "/touchdown/predicted_only"
+
+
+def predicted_only_topic(estimate: Estimate, config: Config) -> TopicSeries:
+    """The predict-only rows of an estimate (gaps bridged, refused values), marked per axis."""
+    missing = ~np.isfinite(np.asarray(estimate.measured))
+    rows = missing.any(axis=1)
+    return TopicSeries(PREDICTED_ONLY_TOPIC, "Vector3Stamped", estimate.stamps_ns[rows], missing[rows].astype(float),
+                       frame_id=config.topics.frame_id)
+
+
 def write_estimate_bag(result: BagEstimate, config: Config, out: Path, overwrite: bool = False) -> Path:
-    """Write the estimate topics of one bag (its `answer`: smoothed or filtered) to a rosbag2 MCAP directory."""
-    write_bag(out, estimate_topics(result.estimate, config, result.answer), overwrite=overwrite)
+    """Write the estimate topics of one bag (its `answer`: smoothed or filtered) to a rosbag2 MCAP directory,
+    with `PREDICTED_ONLY_TOPIC` marking the rows without a usable measurement."""
+    topics = estimate_topics(result.estimate, config, result.answer) + [predicted_only_topic(result.estimate, config)]
+    write_bag(out, topics, overwrite=overwrite)
     return out
 
 
