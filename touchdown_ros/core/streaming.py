@@ -11,8 +11,10 @@ round-off (the filtered signals; the streaming estimator has no smoother).
 
 On top of the offline pipeline it classifies and counts what a live sensor stream
 can do wrong (duplicate, out-of-order and off-grid stamps, gaps, clock jumps,
-non-finite, saturated and millimetre values), detects the return to levitation,
-summarises each touchdown and raises a force alarm. No ROS in here.
+non-finite, saturated, pinned and millimetre values) and treats gaps, clock jumps and
+refused values by the input policy the offline tools apply (`core.input_policy`),
+detects the return to levitation, summarises each touchdown and raises a force alarm.
+No ROS in here.
 """
 from __future__ import annotations
 
@@ -142,7 +144,7 @@ class StreamCounts:
     filter_restarts: int = 0  # touchdown filters restarted from the data after a long gap, jump or unusable run
     reference_refused: int = 0  # levitated windows refused as not clean (saturated, pinned, millimetres, missing)
     clock_jump_forward: int = 0  # forward stamp jumps > max_gap (nothing allocated, filter restarted)
-    clock_jump_backward: int = 0  # backward stamp jumps > max_gap (grid re-anchored, filter restarted)
+    clock_jump_backward: int = 0  # backward stamp jumps > max_gap (the stream starts over: touchdown closed)
     resyncs: int = 0  # grid re-anchored after resync_after refused stamps
     drops: int = 0  # touchdowns detected
     relevitations: int = 0  # touchdowns ended by the return to levitation
@@ -169,7 +171,7 @@ class TouchdownSummary(NamedTuple):
     peak_axial_force: float  # max F_z, N
     peak_radial_force: float  # max |(F_x, F_y)|, N
     mean_nis: float  # mean normalised innovation squared (3 expected)
-    end_reason: str  # relevitated | resync | end_of_stream
+    end_reason: str  # relevitated | clock_jump (back) | resync | end_of_stream
     filter_restarts: int = 0  # restarts after long gaps, clock jumps or runs of unusable samples
 
 
