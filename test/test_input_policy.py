@@ -305,4 +305,14 @@ def test_demo_help_says_how_long_it_takes(capsys):
     with pytest.raises(SystemExit):
         main(["demo", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "10 min" not in text and "about 3 min" in text
+    assert "10 min" not in text and "--quick: about 10 s" in text and "about 2 min" in text
+
+
+def test_evaluation_md_says_which_coefficients_how_held_out_and_what_the_means_are(exp_11, tmp_path):
+    coefficient_file = save_coefficients(tmp_path / "c.yaml", Coefficients.zeros(CONFIG.kernel), CONFIG,
+                                         TrainingRecord())
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(exp_11), "--coeffs", str(coefficient_file), "--no-cv", "-o", str(out)]) == 0
+    heading = (out / "evaluation.md").read_text().split("| bag |")[0]
+    assert heading.startswith("# Evaluation") and str(coefficient_file) in heading
+    assert "in-sample" in heading and "absolute value" in heading

@@ -387,8 +387,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(run=cmd_diagnose)
 
+    # measured 2026-11-24 on the 2-core machine: --quick 10.5 s; the full demo's stage-1 calibration alone 2 min 15 s
     demo_text = (
-        "simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 3 min on 2 cores; --quick under 1 min)"
+        "simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (several minutes: training's "
+        "stage 1 alone takes about 2 min on 2 cores; --quick: about 10 s)"
     )
     p = sub.add_parser("demo", help=demo_text, description=demo_text[0].upper() + demo_text[1:] + ".")
     _add_config(p)
