@@ -238,6 +238,13 @@ def test_output_on_a_read_only_place_is_refused_before_the_work(exp_11, tmp_path
     assert main(["estimate", str(exp_11), "--no-figures", "-o", str(out)]) == EXIT_OUTPUT
     error = capsys.readouterr().err
     assert "/proc/touchdown_out" in error and "Traceback" not in error and len(error.strip().splitlines()) == 1
+    coefficient_file = save_coefficients(tmp_path / "c.yaml", Coefficients.zeros(CONFIG.kernel), CONFIG,
+                                         TrainingRecord())
+    for command in (["train", str(exp_11), "-o", "/proc/touchdown_c.yaml"],
+                    ["evaluate", str(exp_11), "--coeffs", str(coefficient_file), "--no-cv", "-o", str(out)]):
+        assert main(command) == EXIT_OUTPUT  # before the work: train and evaluate return at once
+        error = capsys.readouterr().err
+        assert "/proc/touchdown" in error and "Traceback" not in error and len(error.strip().splitlines()) == 1
     # a file where the output directory goes
     blocker = tmp_path / "a_file"
     blocker.write_text("")
