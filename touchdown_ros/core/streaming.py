@@ -830,7 +830,7 @@ class StreamingEstimator:
 
     def _check_alarm(self, out: StreamOutput) -> None:
         squared = np.einsum("ij,ij->i", out.force_xyz, out.force_xyz)
-        above = squared > self.settings.alarm_force**2
+        above = (squared > self.settings.alarm_force**2) & out.used  # measured rows only, as the peaks
         if above.any():
             magnitude = np.sqrt(squared)
             self.counts.alarm_samples += int(np.count_nonzero(above))
