@@ -65,10 +65,11 @@ class Case:
 
 
 # ------------------------------------------------------------------------------------------- signal
-def drop_cycle(sample_period: float, seed: int = 0, signal: str = "cycle") -> np.ndarray:
+def drop_cycle(sample_period: float, seed: int = 0, signal: str = "cycle", cycle_seconds: float = 0.0) -> np.ndarray:
     """One cycle of displacements (n, 3) m: levitated, the core model's drop, ramp back, levitated.
 
-    signal "levitated": the same length of levitation only (the EKF never runs).
+    signal "levitated": the same length of levitation only (the EKF never runs). cycle_seconds: a
+    longer cycle, levitated after the drop (a drop every cycle_seconds s); 0: the 0.2 s cycle.
     """
     import jax
     import jax.numpy as jnp
@@ -90,7 +91,8 @@ def drop_cycle(sample_period: float, seed: int = 0, signal: str = "cycle") -> np
     _, states = jax.jit(lambda x: jax.lax.scan(per_sample, x, None, length=n(0.15)))(xi0)
     drop = np.asarray(states)[:, :3]
     ramp = np.linspace(drop[-1], np.zeros(3), n(0.005))
-    positions = np.concatenate([np.zeros((n(LEVITATED_BEFORE_DROP), 3)), drop, ramp, np.zeros((n(0.025), 3))])
+    after = max(n(0.025), n(cycle_seconds) - n(LEVITATED_BEFORE_DROP) - len(drop) - len(ramp))
+    positions = np.concatenate([np.zeros((n(LEVITATED_BEFORE_DROP), 3)), drop, ramp, np.zeros((after, 3))])
     if signal == "levitated":
         positions = np.zeros_like(positions)
     return positions + config.noise_rms * np.random.default_rng(seed).standard_normal(positions.shape)
@@ -109,7 +111,7 @@ def publisher_main(args: argparse.Namespace) -> int:
     if args.publisher_priority:  # the AMB controller / sensor driver it stands for runs real-time
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.publisher_priority))
     period = 1.0 / args.rate
-    cycle = drop_cycle(period, signal=args.signal)
+    cycle = drop_cycle(period, signal=args.signal, cycle_seconds=getattr(args, "cycle_seconds", 0.0))
     rclpy.init()
     node = rclpy.create_node("bench_publisher")
     profile = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
@@ -366,6 +368,8 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10000.0)
     parser.add_argument("--signal", choices=("cycle", "levitated"), default="cycle")
     parser.add_argument("--duration", type=float, default=60.0, help="s of publishing per case (default 60)")
+    parser.add_argument("--cycle-seconds", type=float, default=0.0,
+                        help="publisher: a drop every this many s (levitated in between); default 0: every 0.2 s")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="extra node parameter for every case, e.g. node.receive:=callback")
     parser.add_argument("--publisher-priority", type=int, default=0, metavar="P",

@@ -386,7 +386,7 @@ def test_smoother_beats_filter_on_velocity():
 
 def test_grid_fills_gaps_and_refuses_off_grid_stamps():
     stamps = np.array([0, 100_000, 200_000, 500_000], dtype=np.int64)
-    grid = to_grid(stamps, np.ones((4, 3)), 1e-4)
+    grid = to_grid(stamps, np.full((4, 3), 1e-5), 1e-4)  # metres inside the sensor range
     assert grid.missing == 2 and grid.etas.shape == (6, 3)
     assert np.isnan(grid.etas[3]).all() and np.isfinite(grid.etas[5]).all()
     with pytest.raises(GridError, match="off the"):

@@ -518,3 +518,50 @@ def test_invalid_rig_parameter_stops_the_node_with_a_clear_message(tmp_path):
     )
     assert result.returncode == 2
     assert "rig.mass" in result.stderr and "must be > 0" in result.stderr
+
+
+def test_input_policy_live_millimetres_gap_malformed_and_conditional_effect(tmp_path):
+    """The input policy over DDS: a millimetre stream gives no drop; a 50 ms gap in a touchdown restarts the
+    filter and the touchdown goes on to the re-levitation; one malformed message is this period's WARN only;
+    a conditional effect left off by node.conditions is a WARN naming it."""
+    with_effect = load_config(overrides={"effects.active": ["axial_load"], "effects.when.axial_load": "axial_load"})
+    coefficient_file = save_coefficients(tmp_path / "c.yaml", Coefficients.zeros(with_effect.kernel), with_effect,
+                                         TrainingRecord(), effects=with_effect.effects)
+    args = ["--coefficients", str(coefficient_file), "--ros-args", "--params-file", RIG,
+            "-p", "node.input_reliability:=reliable", *FAST_NODE]
+    d = domain(4)
+    with Peer(d) as peer, NodeProcess(tmp_path, d, args) as node:
+        peer.wait_ready(node)
+        model = peer.latest[MODEL]
+        assert model["level"] == WARN and "axial_load" in model["message"] and "node.conditions" in model["message"]
+        assert "axial_load" in model["values"]["effects_off"]
+
+        # 1. A drop recorded in millimetres: refused, no drop, no force alarm.
+        stamps, metres = model_drop_record(seed=6, duration=0.05)
+        peer.publish_points(stamps, metres * 1000.0)
+        assert peer.wait_for(lambda: peer.count("received") == len(stamps), 10), peer.latest.get(INPUT)
+        peer.wait_for(lambda: False, 1.2)  # two more diagnostics periods
+        assert peer.value(CONTACT, "drops") == "0" and peer.count("reference_refused") > 0
+        assert peer.count("rejected.millimetre") > 0
+        assert not any(h["name"] == CONTACT and h["level"] == ERROR for h in peer.history)
+
+        # 2. One malformed message: WARN in its period, OK again in the next ones.
+        peer.points.publish(b"\x00\x01\x00\x00\x07")
+        assert peer.wait_for(lambda: peer.count("malformed_messages") == 1 and peer.latest[INPUT]["level"] == WARN, 5)
+        assert peer.wait_for(lambda: peer.latest[INPUT]["level"] == OK, 5), peer.latest[INPUT]
+
+        # 3. A drop with 50 ms without samples in the touchdown, then back to levitation.
+        stamps, first = model_drop_record(seed=4, duration=0.1, t0_ns=int(stamps[-1]) + 10**9)
+        ramp = np.linspace(first[-1], [0.0, 0.0, 0.0], 50)
+        settle = CONFIG.noise_rms * np.random.default_rng(5).standard_normal((300, 3))
+        xyz = np.concatenate([first, ramp, settle])
+        stamps = stamps[0] + np.arange(len(xyz), dtype=np.int64) * PERIOD_NS
+        keep = np.ones(len(xyz), bool)
+        keep[500:1000] = False  # 50 ms in the touchdown (the drop starts at row 200)
+        peer.publish_points(stamps[keep], xyz[keep])
+        assert peer.wait_for(lambda: LAST in peer.latest, 20), (peer.latest, node.log())
+        summary = peer.latest[LAST]["values"]
+        assert summary["end_reason"] == "relevitated" and summary["filter_restarts"] == "1", summary
+        assert float(summary["duration_s"]) > 0.1  # the whole touchdown, not cut at the gap
+        assert peer.value(CONTACT, "drops") == "1" and peer.count("filter_restarts") == 1
+        assert node.alive()

@@ -12,10 +12,12 @@ from touchdown_ros import __version__
 from touchdown_ros.io.bags import BagError
 from touchdown_ros.io.coefficients import CoefficientFileError
 from touchdown_ros.io.config import ConfigError, load_config
+from touchdown_ros.outputs import OutputError, OutputGuard, check_writable
 from touchdown_ros.progress import progress
 
-EXIT_USAGE = 2
-EXIT_BAD_INPUT = 3
+EXIT_USAGE = 2  # wrong command line (argparse)
+EXIT_BAD_INPUT = 3  # a bag, rig YAML, coefficient file or argument is refused (docs/input_policy.md)
+EXIT_OUTPUT = 5  # the output cannot be written (read-only, disk full, a file where a directory goes)
 
 
 def _add_config(parser: argparse.ArgumentParser) -> None:
@@ -100,7 +102,7 @@ def _simulate_variant(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from touchdown_ros.offline import FILTERED, SMOOTHED, estimate_bag, estimator_for, write_estimate_bag
+    from touchdown_ros.offline import FILTERED, SMOOTHED, check_bag, estimate_bag, estimator_for, write_estimate_bag
     from touchdown_ros.report import plot_estimate, write_summaries
 
     config = _config(args)
@@ -110,22 +112,28 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
         loaded = load_coefficients(args.coeffs, config)
         coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
-    estimator = estimator_for(config, coeffs, effects)
-    args.out.mkdir(parents=True, exist_ok=True)
+    check_writable(args.out, directory=True)
     targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
     for target in targets:
         _refuse_existing(target, args.overwrite)
+    for bag in args.bags:  # every bag is checked before anything is written
+        check_bag(config, bag)
+    estimator = estimator_for(config, coeffs, effects)
     answer = FILTERED if args.filtered else SMOOTHED
+    figures = [args.out / "figures" / Path(bag).name for bag in args.bags]
+    written = [args.out, *targets, args.out / "figures", *figures, args.out / "summary.json", args.out / "summary.md"]
     results = []
-    for bag, target in progress(zip(args.bags, targets), len(args.bags), "estimate"):
-        result = estimate_bag(config, bag, estimator, answer=answer)
-        write_estimate_bag(result, config, target, overwrite=args.overwrite)
-        if not args.no_figures:
-            plot_estimate(result, args.out / "figures" / Path(bag).name)
-        results.append(result)
-    write_summaries(
-        results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model", "estimate": answer}
-    )
+    with OutputGuard(written):
+        args.out.mkdir(parents=True, exist_ok=True)
+        for bag, target, figure in progress(zip(args.bags, targets, figures), len(args.bags), "estimate"):
+            result = estimate_bag(config, bag, estimator, answer=answer)
+            write_estimate_bag(result, config, target, overwrite=args.overwrite)
+            if not args.no_figures:
+                plot_estimate(result, figure)
+            results.append(result)
+        write_summaries(
+            results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model", "estimate": answer}
+        )
     print((args.out / "summary.md").read_text(), end="")
     print(f"estimates, summary.json/.md and figures in {args.out}")
     return 0
@@ -134,19 +142,30 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from touchdown_ros.train import train
 
+    from touchdown_ros.offline import check_training_bag
+
     config = _config(args)
     if args.out.exists() and not (args.overwrite or args.resume):
         raise FileExistsError(f"{args.out} exists; pass --overwrite to replace it or --resume to continue")
-    outcome = train(
-        config,
-        args.bags,
-        args.out,
-        regularisation=args.regularisation,
-        init=args.init,
-        resume=args.resume,
-        max_steps=args.steps,
-        duration=args.duration,
-    )
+    check_writable(args.out, directory=False)
+    if args.init is not None:
+        from touchdown_ros.io.coefficients import load_coefficients
+
+        load_coefficients(args.init, config)
+    for bag in args.bags:  # every bag is checked before the work
+        check_training_bag(config, bag)
+    # the checkpoint stays when training stops (--resume continues from it); the file is written at the end, atomically
+    with OutputGuard([args.out]):
+        outcome = train(
+            config,
+            args.bags,
+            args.out,
+            regularisation=args.regularisation,
+            init=args.init,
+            resume=args.resume,
+            max_steps=args.steps,
+            duration=args.duration,
+        )
     calibration, pkbkr = outcome.calibration, outcome.pkbkr
     if calibration is not None:
         nominal = outcome.config.nominal
@@ -172,22 +191,39 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from touchdown_ros.report import plot_evaluation
     from touchdown_ros.train import Trainable
 
+    from touchdown_ros.offline import check_training_bag
+
     config = _config(args)
     full = load_coefficients(args.coeffs, config)
     config = full.config(config)
     lam = full.training.regularisation
     trained = Trainable(full.coeffs, full.effects)
+    check_writable(args.out, directory=True)
+    for bag in args.bags:  # every bag is checked before the work
+        check_training_bag(config, bag)
     if args.no_cv:
         per_bag = [trained] * len(args.bags)
     else:
         per_bag = cross_validate(config, args.bags, trained, lam, args.cv_steps)
     comparisons = compare(config, args.bags, per_bag)
-    aggregate = write_tables(comparisons, args.out)
+    with OutputGuard([args.out, *(args.out / n for n in ("evaluation.md", "evaluation.csv", "evaluation.json", "figures"))]):
+        _write_evaluation(args, comparisons, config, full)
+    print((args.out / "evaluation.md").read_text(), end="")
+    print(f"tables, evaluation.json and figures in {args.out}")
+    return 0
+
+
+def _write_evaluation(args: argparse.Namespace, comparisons, config, full) -> None:
+    import json
+
+    from touchdown_ros.evaluate import write_tables
+    from touchdown_ros.report import plot_evaluation
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    aggregate = write_tables(comparisons, args.out, coefficients=str(args.coeffs), cross_validated=not args.no_cv)
     names = [b.name for b in args.bags]
     example = names.index(args.example) if args.example in names else 0
     plot_evaluation(comparisons, config, full.coeffs, args.out / "figures", example)
-    import json
-
     (args.out / "evaluation.json").write_text(
         json.dumps(
             {
@@ -199,9 +235,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             indent=2,
         )
     )
-    print((args.out / "evaluation.md").read_text(), end="")
-    print(f"tables, evaluation.json and figures in {args.out}")
-    return 0
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
@@ -211,7 +244,14 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0)
     if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100:
         raise ValueError("--k must be >= 1, --force-walk > 0 and --threshold in (0, 100)")
-    run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
+    from touchdown_ros.offline import check_bag
+
+    check_writable(args.out, directory=True)
+    for bag in args.bags:  # every bag is checked before the work
+        check_bag(config, bag)
+    names = ("diagnosis.md", "diagnosis.json", "errors.csv", "ranking.csv", "figures")
+    with OutputGuard([args.out, *(args.out / name for name in names)]):
+        run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
     print((args.out / "diagnosis.md").read_text(), end="")
     print(f"diagnosis.md/.json, errors.csv, ranking.csv and figures in {args.out}")
     return 0
@@ -347,9 +387,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(run=cmd_diagnose)
 
-    p = sub.add_parser(
-        "demo", help="simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 10 min)"
+    # measured 2026-11-24 on the 2-core machine: --quick 10.5 s; the full demo's stage-1 calibration alone 2 min 15 s
+    demo_text = (
+        "simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (several minutes: training's "
+        "stage 1 alone takes about 2 min on 2 cores; --quick: about 10 s)"
     )
+    p = sub.add_parser("demo", help=demo_text, description=demo_text[0].upper() + demo_text[1:] + ".")
     _add_config(p)
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
     p.add_argument("--seed", type=int, default=0)
@@ -376,8 +419,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.run(args)
     except (ConfigError, BagError, CoefficientFileError, FileExistsError, FileNotFoundError, ValueError) as error:
-        print(f"touchdown {args.command}: error: {error}", file=sys.stderr)
+        print(f"touchdown {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except ArithmeticError as error:  # a filter that diverged on data the checks let through
+        print(f"touchdown {args.command}: error: numerical failure ({type(error).__name__}: {_one_line(error)}); "
+              "check the bags with touchdown estimate first", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as error:  # writing the output: read-only, disk full, a file where a directory goes
+        where = f"{error.filename}: " if getattr(error, "filename", None) and not isinstance(error, OutputError) else ""
+        text = error.strerror if where and error.strerror else str(error)
+        print(f"touchdown {args.command}: error: {where}{_one_line(text)}", file=sys.stderr)
+        return EXIT_OUTPUT
+
+
+def _one_line(error: object) -> str:
+    """An error as one line (YAML and rosbags messages can span several)."""
+    return " ".join(str(error).split())
 
 
 if __name__ == "__main__":

@@ -8,10 +8,19 @@ from typing import Any
 import numpy as np
 
 from touchdown_ros.core.effects import Effects, gates_for
-from touchdown_ros.core.estimate import Estimate, Estimator, SignalSet, detect_drop, force_std, make_estimator, to_grid
+from touchdown_ros.core.estimate import (
+    Estimate,
+    Estimator,
+    SignalSet,
+    detect_drop,
+    force_std,
+    levitated_mean_z,
+    make_estimator,
+)
+from touchdown_ros.core.input_policy import InputPolicy, RecordInput, split_record, window_is_clean
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
-from touchdown_ros.io.bags import CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
+from touchdown_ros.io.bags import BagError, CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
 from touchdown_ros.io.config import Config
 
 
@@ -55,6 +64,7 @@ class BagEstimate:
     truth: AlignedTruth | None
     summary: dict[str, Any]
     answer: str = SMOOTHED  # which of estimate.smoothed / .filtered is written and summarised
+    restarts: tuple[int, ...] = ()  # rows of the estimate where the filter restarted after a gap
 
     @property
     def written(self) -> SignalSet:
@@ -91,17 +101,115 @@ def estimate_bag(
     if coeffs is None and all(g == 1.0 for g in gated.gates) and effects is estimator.model.effects:
         gated = None  # the compiled model as it is
     series = read_displacement(path, config.topics.displacement)
-    grid = to_grid(series.stamps_ns, series.xyz, config.sample_period)
-    onset = detect_drop(
-        grid.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window, config.rig.gravity
-    )
-    if onset is None:
-        raise NoDropError(
-            f"{path}: no touchdown found (z never falls {config.drop.threshold * 1e6:.0f} um below its levitated mean)"
-        )
-    estimate = estimator(grid.stamps_ns, grid.etas, onset, grid.missing, coeffs=coeffs, effects=gated)
+    record = split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
+    estimate, restarts = estimate_record(config, record, estimator, path, coeffs=coeffs, effects=gated)
     truth = _aligned_truth(path, config, estimate.stamps_ns)
-    return BagEstimate(path, estimate, truth, summarise(estimate, truth, config, answer), answer)
+    summary = summarise(estimate, truth, config, answer)
+    summary["input"] = input_summary(record, restarts)
+    return BagEstimate(path, estimate, truth, summary, answer, restarts)
+
+
+def estimate_record(
+    config: Config,
+    record: RecordInput,
+    estimator: Estimator,
+    source: str | Path = "",
+    coeffs: Coefficients | None = None,
+    effects: Effects | None = None,
+) -> tuple[Estimate, tuple[int, ...]]:
+    """A record under the input policy estimated from its drop onset on: each segment after a long
+    gap, clock jump or run of unusable samples by a filter started afresh from its own data (as the
+    live node restarts it). Returns the joined estimate and the rows where the filter restarted."""
+    segment_index, onset = find_onset(record, config, Path(source))
+    parts = []
+    for k in range(segment_index, len(record.segments)):
+        segment = record.segments[k]
+        start = onset if k == segment_index else 0
+        if not np.isfinite(segment.etas[start:]).all(axis=1).any():
+            continue  # nothing usable to start a filter from
+        missing = int(np.count_nonzero(~np.isfinite(segment.etas[start:]).all(axis=1)))
+        parts.append(estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects))
+    restarts = tuple(int(r) for r in np.cumsum([len(p.stamps_ns) for p in parts])[:-1])
+    return concatenate_estimates(parts), restarts
+
+
+def check_bag(config: Config, path: str | Path) -> None:
+    """Raise (BagError, GridError or NoDropError, naming the file) unless `estimate_bag` can estimate the
+    bag: readable, valid samples, stamps on the grid, a clean levitated window, a drop."""
+    path = Path(path)
+    series = read_displacement(path, config.topics.displacement)
+    find_onset(split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path)), config, path)
+
+
+def check_training_bag(config: Config, path: str | Path) -> None:
+    """`check_bag`, and no gap or clock jump beyond node.bridge_gap (the trainer takes one stretch per
+    bag): raise naming the file and the sample."""
+    path = Path(path)
+    series = read_displacement(path, config.topics.displacement)
+    record = split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
+    if len(record.segments) > 1:
+        if record.breaks:
+            index, jump_ns, kind = record.breaks[0]
+            where = f"sample {index}: the stamps jump {jump_ns / 1e9:.6g} s ({kind.replace('_', ' ')})"
+        else:
+            where = f"{record.counts['dropped_rows']} samples in a row without a usable value (saturated or missing)"
+        raise BagError(
+            f"{path}: {where}, beyond node.bridge_gap = {config.node.bridge_gap:g} s; the trainer needs one "
+            "unbroken record per bag: cut the bag there"
+        )
+    find_onset(record, config, path)
+
+
+def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, int]:
+    """(segment, row) of the drop onset in a record under the input policy; the levitated reference
+    comes from the first segment's window, which must be clean (`window_is_clean`)."""
+    first = record.segments[0]
+    window = max(1, int(round(config.drop.levitated_window / config.sample_period)))
+    if not window_is_clean(first.etas[:window], config.drop.threshold) or len(first.etas) < window:
+        usable = np.isfinite(first.etas[:window]).all(axis=1)
+        spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
+        raise NoDropError(
+            f"{path}: the levitated window (first {config.drop.levitated_window * 1e3:g} ms) is not clean: "
+            f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
+            f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
+        )
+    reference = levitated_mean_z(first.etas[:, 2], config.sample_period, config.drop.levitated_window)
+    for k, segment in enumerate(record.segments):
+        onset = detect_drop(
+            segment.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window,
+            config.rig.gravity, reference=reference,
+        )
+        if onset is not None:
+            return k, onset
+    raise NoDropError(
+        f"{path}: no touchdown found (z never falls {config.drop.threshold * 1e6:.0f} um below its levitated mean)"
+    )
+
+
+def concatenate_estimates(parts: list[Estimate]) -> Estimate:
+    """One Estimate of consecutive segments' estimates (each filtered and smoothed on its own)."""
+    if len(parts) == 1:
+        return parts[0]
+    import jax
+
+    def join(*arrays):
+        return np.concatenate([np.asarray(a) for a in arrays])
+
+    fields = {
+        name: jax.tree.map(join, *[getattr(p, name) for p in parts])
+        for name in Estimate._fields
+        if name not in ("onset_index", "missing")
+    }
+    return Estimate(**fields, onset_index=parts[0].onset_index, missing=sum(p.missing for p in parts))
+
+
+def input_summary(record: RecordInput, restarts: tuple[int, ...]) -> dict[str, Any]:
+    """What the input policy did to a record, with counts (summary.json `input`, summary.md)."""
+    return {
+        **record.counts,
+        "filter_restarts": len(restarts),
+        "breaks": [{"sample": i, "jump_s": ns / 1e9, "kind": kind} for i, ns, kind in record.breaks],
+    }
 
 
 def _aligned_truth(path: Path, config: Config, stamps_ns: np.ndarray) -> AlignedTruth | None:
@@ -133,11 +241,14 @@ def summarise(estimate: Estimate, truth: AlignedTruth | None, config: Config, an
     chosen, filtered, smoothed = answer_of(estimate, answer), estimate.filtered, estimate.smoothed
     force, force_cov = np.asarray(chosen.force_xyz), np.asarray(chosen.force_cov)
     radial_force = np.hypot(force[:, 0], force[:, 1])
-    peak_axial, peak_radial = int(np.argmax(force[:, 2])), int(np.argmax(radial_force))
+    measured = np.isfinite(estimate.measured).all(axis=1)  # predict-only rows are left out of the peaks
+    peak_axial = int(np.argmax(np.where(measured, force[:, 2], -np.inf)))
+    peak_radial = int(np.argmax(np.where(measured, radial_force, -np.inf)))
     summary: dict[str, Any] = {
         "estimate": answer,
         "samples": int(len(estimate.stamps_ns)),
         "missing_samples": int(estimate.missing),
+        "predicted_only_samples": int(np.count_nonzero(~measured)),
         "onset_stamp_ns": int(estimate.stamps_ns[0]),
         "rmse_displacement_m": rmse(chosen.state[:, :3], estimate.measured).tolist(),
         "rmse_prediction_m": rmse(estimate.predicted_output, estimate.measured).tolist(),
@@ -159,8 +270,10 @@ def summarise(estimate: Estimate, truth: AlignedTruth | None, config: Config, an
             "rmse_contact_force_filtered_N": rmse(filtered.force_xyz, truth.contact_force).tolist(),
             "peak_axial_force_true_N": float(np.nanmax(truth.contact_force[:, 2])),
             "peak_radial_force_true_N": float(np.nanmax(true_radial)),
-            "peak_axial_force_error": relative_peak_error(chosen.F_z, truth.contact_force[:, 2]),
-            "peak_radial_force_error": relative_peak_error(radial_force, true_radial),
+            "peak_axial_force_error": relative_peak_error(
+                np.where(measured, np.asarray(chosen.F_z), np.nan), truth.contact_force[:, 2]
+            ),
+            "peak_radial_force_error": relative_peak_error(np.where(measured, radial_force, np.nan), true_radial),
             "contact_force_within_2_std": within_two_std(force, force_cov, truth.contact_force),
         }
     return summary
@@ -212,9 +325,25 @@ def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) 
     ]
 
 
+#: Offline output topic marking the rows without a usable measurement (input policy): Vector3Stamped, one
+#: message per such row, 1.0 on each axis that had no usable value (the live node's batched output has `nis`
+#: NaN there instead).
+PREDICTED_ONLY_TOPIC = "/touchdown/predicted_only"
+
+
+def predicted_only_topic(estimate: Estimate, config: Config) -> TopicSeries:
+    """The predict-only rows of an estimate (gaps bridged, refused values), marked per axis."""
+    missing = ~np.isfinite(np.asarray(estimate.measured))
+    rows = missing.any(axis=1)
+    return TopicSeries(PREDICTED_ONLY_TOPIC, "Vector3Stamped", estimate.stamps_ns[rows], missing[rows].astype(float),
+                       frame_id=config.topics.frame_id)
+
+
 def write_estimate_bag(result: BagEstimate, config: Config, out: Path, overwrite: bool = False) -> Path:
-    """Write the estimate topics of one bag (its `answer`: smoothed or filtered) to a rosbag2 MCAP directory."""
-    write_bag(out, estimate_topics(result.estimate, config, result.answer), overwrite=overwrite)
+    """Write the estimate topics of one bag (its `answer`: smoothed or filtered) to a rosbag2 MCAP directory,
+    with `PREDICTED_ONLY_TOPIC` marking the rows without a usable measurement."""
+    topics = estimate_topics(result.estimate, config, result.answer) + [predicted_only_topic(result.estimate, config)]
+    write_bag(out, topics, overwrite=overwrite)
     return out
 
 

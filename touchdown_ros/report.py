@@ -101,8 +101,8 @@ def summary_table(results: Sequence[BagEstimate]) -> str:
     )
     header = (
         "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
-        "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error |\n"
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error | input (docs/input_policy.md) |\n"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n"
     )
     rows = []
     for result in results:
@@ -118,9 +118,31 @@ def summary_table(results: Sequence[BagEstimate]) -> str:
         rows.append(
             f"| {result.path.name} | {result.answer} | {s['samples']} | {' | '.join(rms)} "
             f"| {s['peak_axial_force_N'] / 1e3:.2f} | {s['peak_axial_force_std_N'] / 1e3:.2f} "
-            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} |"
+            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} | {input_text(s)} |"
         )
     return intro + header + "\n".join(rows) + "\n"
+
+
+def input_text(summary: dict[str, Any]) -> str:
+    """What the input policy did to one bag, in words with counts ('clean' when nothing)."""
+    counts = summary.get("input") or {}
+    parts = []
+    if summary.get("predicted_only_samples"):
+        parts.append(f"{summary['predicted_only_samples']} predict-only rows (left out of the peaks)")
+    for key, words in (
+        ("saturated", "saturated or pinned samples"),
+        ("non_finite", "non-finite samples"),
+        ("bridged_gaps", "gaps bridged"),
+        ("gaps", "gaps beyond node.bridge_gap"),
+        ("clock_jump_forward", "clock jumps forward"),
+        ("clock_jump_backward", "clock jumps back"),
+        ("unusable_runs", "runs of unusable samples beyond node.bridge_gap"),
+        ("dropped_rows", "rows not estimated"),
+        ("filter_restarts", "filter restarts"),
+    ):
+        if counts.get(key):
+            parts.append(f"{counts[key]} {words}")
+    return "; ".join(parts) or "clean"
 
 
 def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, Any] | None = None) -> None:

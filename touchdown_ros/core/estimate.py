@@ -11,6 +11,7 @@ from jax import Array
 from touchdown_ros.core.dynamics import contact_forces_and_jacobian, phi
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
+from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
 
 
@@ -53,45 +54,55 @@ class Estimate(NamedTuple):
     missing: int
 
 
-class GridError(ValueError):
-    """Sample stamps do not fit the configured sample period."""
+def to_grid(
+    stamps_ns: np.ndarray,
+    etas: np.ndarray,
+    sample_period: float,
+    tolerance: float = 0.25,
+    policy: InputPolicy | None = None,
+    source: str = "",
+) -> SampleGrid:
+    """Place samples on the regular grid of sample_period (s) under the input policy
+    (`core.input_policy`; its defaults unless given): refused values (saturated, pinned,
+    millimetres) and bridged holes become NaN rows.
 
-
-def to_grid(stamps_ns: np.ndarray, etas: np.ndarray, sample_period: float, tolerance: float = 0.25) -> SampleGrid:
-    """Place samples on the regular grid of sample_period (s); gaps become NaN rows.
-
-    Refuses stamps that are off the grid by more than tolerance of a period, and
-    duplicate or decreasing stamps.
+    Refuses (GridError naming `source` and the sample) stamps that are off the grid by more than
+    tolerance of a period, duplicate or decreasing stamps, and holes the policy does not bridge
+    (a gap or clock jump: `split_record` gives the segments around them).
     """
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    period_ns = sample_period * 1e9
-    offsets = (stamps_ns - stamps_ns[0]) / period_ns
-    index = np.rint(offsets).astype(np.int64)
-    if np.any(np.diff(index) <= 0):
-        bad = int(np.argmax(np.diff(index) <= 0)) + 1
-        raise GridError(f"sample {bad}: stamp not after the previous one on the {sample_period} s grid")
-    jitter = np.abs(offsets - index)
-    if np.any(jitter > tolerance):
-        bad = int(np.argmax(jitter > tolerance))
-        raise GridError(
-            f"sample {bad}: stamp is {jitter[bad]:.2f} periods off the {sample_period} s grid "
-            "(is sensor.sample_period right?)"
-        )
-    grid = np.full((index[-1] + 1, 3), np.nan)
-    grid[index] = etas
-    grid_stamps = stamps_ns[0] + np.rint(np.arange(index[-1] + 1) * period_ns).astype(np.int64)
-    return SampleGrid(grid_stamps, grid, int(index[-1] + 1 - len(index)))
+    policy = policy or InputPolicy(sample_period, grid_tolerance=tolerance)
+    record = split_record(stamps_ns, etas, policy, source)
+    if len(record.segments) > 1:
+        where = f"{source}: " if source else ""
+        if record.breaks:
+            index, jump_ns, kind = record.breaks[0]
+            what = f"sample {index}: the stamps jump {jump_ns / 1e9:.6g} s ({kind.replace('_', ' ')})"
+        else:
+            what = f"{record.counts['dropped_rows']} samples in a row without a usable value"
+        raise GridError(f"{where}{what}, more than node.bridge_gap = {policy.bridge_gap:g} s; cut the record there")
+    segment = record.segments[0]
+    return SampleGrid(segment.stamps_ns, segment.etas, int(segment.bridged_rows.sum()))
 
 
-def detect_drop(z: np.ndarray, sample_period: float, threshold: float, window: float, gravity: float) -> int | None:
+def levitated_mean_z(z: np.ndarray, sample_period: float, window: float) -> float:
+    """Mean of the finite z (m) over the first `window` s (0 if none), the drop detection's reference."""
+    window_samples = max(1, int(round(window / sample_period)))
+    finite = np.isfinite(z[:window_samples])
+    return float(np.mean(z[:window_samples][finite])) if finite.any() else 0.0
+
+
+def detect_drop(
+    z: np.ndarray, sample_period: float, threshold: float, window: float, gravity: float, reference: float | None = None
+) -> int | None:
     """Index of the drop onset: z leaves its levitated mean by threshold (m); None if it never does.
 
     The crossing is moved back by the free-fall time to fall threshold, sqrt(2 threshold / g).
+    `reference`: the levitated mean z (m) when known (a later segment of a record); else the
+    mean over the first `window` s of z.
     """
     finite = np.isfinite(z)
-    window_samples = max(1, int(round(window / sample_period)))
-    levitated = z[:window_samples][finite[:window_samples]]
-    reference = float(np.mean(levitated)) if levitated.size else 0.0
+    if reference is None:
+        reference = levitated_mean_z(z, sample_period, window)
     below = np.flatnonzero(finite & (z < reference - threshold))
     if below.size == 0:
         return None

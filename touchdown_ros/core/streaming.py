@@ -11,8 +11,10 @@ round-off (the filtered signals; the streaming estimator has no smoother).
 
 On top of the offline pipeline it classifies and counts what a live sensor stream
 can do wrong (duplicate, out-of-order and off-grid stamps, gaps, clock jumps,
-non-finite, saturated and millimetre values), detects the return to levitation,
-summarises each touchdown and raises a force alarm. No ROS in here.
+non-finite, saturated, pinned and millimetre values) and treats gaps, clock jumps and
+refused values by the input policy the offline tools apply (`core.input_policy`),
+detects the return to levitation, summarises each touchdown and raises a force alarm.
+No ROS in here.
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from jax import Array
 from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, predict_with_rate, update
 from touchdown_ros.core.estimate import initial_belief
+from touchdown_ros.core.input_policy import InputPolicy, bridge_rows, value_flags, window_is_clean
 from touchdown_ros.core.types import FilterNoise, Model
 
 if TYPE_CHECKING:  # only for the type hint of StreamSettings.from_config; core never imports io at run time
@@ -54,7 +57,9 @@ class StreamSettings:
     gravity: float  # m/s^2, for the free-fall time of the threshold
     initial_samples: int = 5  # samples averaged for the initial position (as offline)
     grid_tolerance: float = 0.25  # periods a stamp may sit off the grid (as `to_grid`)
-    max_gap: float = 0.05  # s; a longer forward or backward stamp jump is a clock jump (reset)
+    max_gap: float = 0.05  # s; a longer forward or backward stamp jump is a clock jump (filter restarted)
+    bridge_gap: float = 0.002  # s; holes up to this are bridged (predict-only rows); longer: filter restarted
+    rail_samples: int = 10  # identical values in a row beyond half the sensor range: pinned (saturated)
     resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
     sensor_range: float = math.inf  # m; |value| at or beyond it is saturated
     millimetre_limit: float = 0.01  # m; |value| beyond it is taken for a value in mm
@@ -77,6 +82,8 @@ class StreamSettings:
             values.update(
                 grid_tolerance=node.grid_tolerance,
                 max_gap=node.max_gap,
+                bridge_gap=node.bridge_gap,
+                rail_samples=node.rail_samples,
                 resync_after=node.resync_after,
                 sensor_range=node.sensor_range,
                 millimetre_limit=node.millimetre_limit,
@@ -87,6 +94,19 @@ class StreamSettings:
             )
         values.update(overrides)
         return StreamSettings(**values)
+
+    @property
+    def policy(self) -> InputPolicy:
+        """The input policy shared with the offline tools (`core.input_policy`)."""
+        return InputPolicy(
+            sample_period=self.sample_period,
+            sensor_range=self.sensor_range,
+            millimetre_limit=self.millimetre_limit,
+            rail_samples=self.rail_samples,
+            bridge_gap=self.bridge_gap,
+            max_gap=self.max_gap,
+            grid_tolerance=self.grid_tolerance,
+        )
 
     @property
     def window_samples(self) -> int:
@@ -115,12 +135,16 @@ class StreamCounts:
     out_of_order: int = 0  # stamp older than the last placed sample
     off_grid: int = 0  # stamp more than grid_tolerance periods off the grid
     non_finite: int = 0  # NaN or inf value (row kept, predict-only)
-    saturated: int = 0  # |value| at the sensor range (row kept, predict-only)
+    saturated: int = 0  # |value| at the sensor range or pinned at a rail (row kept, predict-only)
     millimetre: int = 0  # |value| > millimetre_limit (row kept, predict-only)
-    gaps: int = 0  # places where grid points were missing
+    gaps: int = 0  # places where grid points were missing, bridged (up to bridge_gap)
     missing_samples: int = 0  # missing grid points (predict-only rows)
-    clock_jump_forward: int = 0  # forward stamp jumps > max_gap (reset)
-    clock_jump_backward: int = 0  # backward stamp jumps > max_gap (reset)
+    long_gaps: int = 0  # holes longer than bridge_gap (up to max_gap): nothing allocated, filter restarted
+    dropped_rows: int = 0  # rows of unusable runs beyond bridge_gap in a touchdown: not filtered
+    filter_restarts: int = 0  # touchdown filters restarted from the data after a long gap, jump or unusable run
+    reference_refused: int = 0  # levitated windows refused as not clean (saturated, pinned, millimetres, missing)
+    clock_jump_forward: int = 0  # forward stamp jumps > max_gap (nothing allocated, filter restarted)
+    clock_jump_backward: int = 0  # backward stamp jumps > max_gap (the stream starts over: touchdown closed)
     resyncs: int = 0  # grid re-anchored after resync_after refused stamps
     drops: int = 0  # touchdowns detected
     relevitations: int = 0  # touchdowns ended by the return to levitation
@@ -147,7 +171,8 @@ class TouchdownSummary(NamedTuple):
     peak_axial_force: float  # max F_z, N
     peak_radial_force: float  # max |(F_x, F_y)|, N
     mean_nis: float  # mean normalised innovation squared (3 expected)
-    end_reason: str  # relevitated | clock_jump | resync | end_of_stream
+    end_reason: str  # relevitated | clock_jump (back) | resync | end_of_stream
+    filter_restarts: int = 0  # restarts after long gaps, clock jumps or runs of unusable samples
 
 
 class StreamEvent(NamedTuple):
@@ -344,6 +369,7 @@ class _Touchdown:
         self.peak_axial = self.peak_radial = -math.inf
         self.nis_sum, self.nis_count = 0.0, 0
         self.last_axial = self.last_radial = False
+        self.restarts = 0
 
     def add(self, out: StreamOutput) -> None:
         n = len(out.stamps_ns)
@@ -357,9 +383,10 @@ class _Touchdown:
         self.axial_impacts += _rising_edges(out.axial_contact, self.last_axial)
         self.radial_impacts += _rising_edges(out.radial_contact, self.last_radial)
         self.last_axial, self.last_radial = bool(out.axial_contact[-1]), bool(out.radial_contact[-1])
-        self.peak_axial = max(self.peak_axial, float(out.F_z.max()))
-        fx, fy = out.force_xyz[:, 0], out.force_xyz[:, 1]
-        self.peak_radial = max(self.peak_radial, math.sqrt(float((fx * fx + fy * fy).max())))
+        if n_used:  # predict-only rows (gaps, refused values) are left out of the peaks, as offline
+            self.peak_axial = max(self.peak_axial, float(out.F_z[used].max()))
+            fx, fy = out.force_xyz[used, 0], out.force_xyz[used, 1]
+            self.peak_radial = max(self.peak_radial, math.sqrt(float((fx * fx + fy * fy).max())))
         if n_used:  # NIS is NaN exactly where the measurement was not used
             self.nis_sum += float(out.nis[used].sum())
             self.nis_count += n_used
@@ -372,10 +399,11 @@ class _Touchdown:
             missing_samples=self.missing,
             axial_impacts=self.axial_impacts,
             radial_impacts=self.radial_impacts,
-            peak_axial_force=self.peak_axial if self.samples else math.nan,
-            peak_radial_force=self.peak_radial if self.samples else math.nan,
+            peak_axial_force=self.peak_axial if self.nis_count else math.nan,
+            peak_radial_force=self.peak_radial if self.nis_count else math.nan,
             mean_nis=self.nis_sum / self.nis_count if self.nis_count else math.nan,
             end_reason=end_reason,
+            filter_restarts=self.restarts,
         )
 
 
@@ -409,6 +437,8 @@ class StreamingEstimator:
         self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period)
         self._period_ns = settings.sample_period * 1e9
         self._max_gap_rows = settings.max_gap / settings.sample_period
+        self._policy = settings.policy
+        self._rail_run, self._rail_last = np.zeros(3, np.int64), np.full(3, np.nan)
         self._initial_cov = np.asarray(noise.initial)
         self.counts = StreamCounts()
         self._events: list[StreamEvent] = []
@@ -486,13 +516,15 @@ class StreamingEstimator:
             before = np.maximum.accumulate(np.concatenate([[self._last_index], candidates[:-1]]))
             back_jump = (before - index) > self._max_gap_rows
             forward_jump = (index - before) > self._max_gap_rows
+            # a hole the policy does not bridge (before < 0: the first sample of a grid)
+            long_gap = (before >= 0) & ((index - before - 1) > self._policy.bridge_rows) & ~forward_jump
             out_of_order = (index < before) & ~back_jump
             duplicate = on_grid & (index == before)
-            off_grid = ~on_grid & (index >= before) & ~forward_jump
+            off_grid = ~on_grid & (index >= before) & ~forward_jump & ~long_gap
             refused = out_of_order | off_grid
             streak = _run_lengths(refused, self._refused_streak)
             resync = refused & (streak >= self.settings.resync_after)
-            event = back_jump | forward_jump | resync
+            event = back_jump | forward_jump | long_gap | resync
             stop = int(np.argmax(event)) if event.any() else len(s)
 
             accepted = on_grid[:stop] & (index[:stop] > before[:stop])
@@ -504,12 +536,16 @@ class StreamingEstimator:
                 self._place(index[:stop][accepted], v[:stop][accepted])
             if stop == len(s):
                 return
+            jump_s = (int(s[stop]) - (self._origin + before[stop] * self._period_ns)) / 1e9
             if back_jump[stop]:
-                self.counts.clock_jump_backward += 1
-                self._reset("clock_jump", int(s[stop]), "stamp jumped back by more than max_gap")
+                self.counts.clock_jump_backward += 1  # the stream starts over (a replay, a restarted sensor)
+                self._reset("clock_jump", int(s[stop]), f"stamp jumped back by {-jump_s:.4g} s (more than max_gap)")
             elif forward_jump[stop]:
                 self.counts.clock_jump_forward += 1
-                self._reset("clock_jump", int(s[stop]), "stamp jumped forward by more than max_gap")
+                self._restart("clock_jump", int(s[stop]), f"stamp jumped forward by {jump_s:.4g} s (more than max_gap)")
+            elif long_gap[stop]:
+                self.counts.long_gaps += 1
+                self._restart("gap", int(s[stop]), f"no sample for {jump_s:.4g} s (more than bridge_gap)")
             else:
                 self.counts.resyncs += 1
                 self._reset("resync", int(s[stop]), f"{self.settings.resync_after} refused stamps in a row")
@@ -538,21 +574,23 @@ class StreamingEstimator:
             self.counts.missing_samples += int(skipped.sum())
         self.counts.accepted += len(index)
 
-        clean_limit = min(self.settings.millimetre_limit, self.settings.sensor_range)
-        if np.all(np.abs(values) < clean_limit):  # finite and in range: the usual case
+        clean_limit = min(self.settings.millimetre_limit, 0.5 * self.settings.sensor_range)
+        if np.all(np.abs(values) < clean_limit):  # finite and well inside the range (never pinned): the usual case
+            self._rail_run[:] = 0
+            self._rail_last = values[-1].copy()
             self._emit_rows(index, values)
             return
+        flags = value_flags(values, self._policy, self._rail_run, self._rail_last)
+        self._rail_run, self._rail_last = flags.rail_run, flags.last
+        self.counts.non_finite += int(np.count_nonzero(flags.non_finite))
+        self.counts.millimetre += int(np.count_nonzero(flags.millimetre))
+        self.counts.saturated += int(np.count_nonzero(flags.saturated))
         values = values.copy()
-        finite = np.isfinite(values)
-        non_finite = ~finite.all(axis=1)
-        magnitude = np.abs(np.where(finite, values, 0.0))
-        millimetre = ~non_finite & (magnitude > self.settings.millimetre_limit).any(axis=1)
-        saturated = ~non_finite & ~millimetre & (magnitude >= self.settings.sensor_range).any(axis=1)
-        self.counts.non_finite += int(np.count_nonzero(non_finite))
-        self.counts.millimetre += int(np.count_nonzero(millimetre))
-        self.counts.saturated += int(np.count_nonzero(saturated))
-        values[~finite] = np.nan  # partial rows keep their finite components, as offline
-        values[millimetre | saturated] = np.nan
+        values[~np.isfinite(values)] = np.nan  # partial rows keep their finite components, as offline
+        values[flags.millimetre | flags.saturated] = np.nan
+        if flags.millimetre.any() and self._phase != TOUCHDOWN:
+            # values in other units: the levitated reference (made of the same stream) cannot be trusted
+            self._start_waiting()
         self._emit_rows(index, values)
 
     def _emit_rows(self, index: np.ndarray, values: np.ndarray) -> None:
@@ -586,8 +624,15 @@ class StreamingEstimator:
         settings = self.settings
         buffer_stamps = np.concatenate([self._buffer_stamps, stamps])
         buffer_etas = np.concatenate([self._buffer_etas, etas])
-        if self._reference is None and len(buffer_etas) >= settings.window_samples:
+        while self._reference is None and len(buffer_etas) >= settings.window_samples:
             window = buffer_etas[: settings.window_samples]
+            if not window_is_clean(window, settings.drop_threshold):  # saturated, pinned, other units, missing
+                self.counts.reference_refused += 1
+                unusable = np.flatnonzero(~np.isfinite(window).all(axis=1))
+                drop = int(unusable[-1]) + 1 if unusable.size else max(1, settings.window_samples // 2)
+                buffer_stamps, buffer_etas = buffer_stamps[drop:], buffer_etas[drop:]
+                self._buffer_first += drop
+                continue
             z = window[:, 2]
             finite = np.isfinite(z)
             reference_z = float(np.mean(z[finite])) if finite.any() else 0.0
@@ -598,12 +643,14 @@ class StreamingEstimator:
                 StreamEvent("levitated", int(buffer_stamps[settings.window_samples - 1]),
                             f"levitated mean z {reference_z * 1e6:.1f} um", reference_z)
             )
+            break
         if self._reference is not None:
             z = buffer_etas[:, 2]
             below = np.flatnonzero(np.isfinite(z) & (z < self.drop_level))
             if below.size:
-                onset = max(0, self._buffer_first + int(below[0]) - settings.fall_samples) - self._buffer_first
-                assert onset >= 0, "buffer trimmed too far"
+                # the buffer keeps fall_samples rows before the new ones once levitated (the phase's start or a
+                # refused window's end before that): the onset never reaches before it
+                onset = max(0, int(below[0]) - settings.fall_samples)
                 self._start_touchdown(int(buffer_stamps[onset]))
                 rest = buffer_stamps[onset:], buffer_etas[onset:]
                 self._buffer_stamps, self._buffer_etas = np.empty(0, np.int64), np.empty((0, 3))
@@ -620,6 +667,8 @@ class StreamingEstimator:
         self._belief: np.ndarray | None = None  # prior of the next row, as a chunk buffer's last row
         self._queue_stamps: list[np.ndarray] = []
         self._queue_etas: list[np.ndarray] = []
+        self._queue_restart: list[bool] = []  # the filter restarts at the piece's first row
+        self._unusable_run = 0  # unusable rows in a row at the end of the queue (input policy's bridge)
         self._left_band = False
         self._band_run = 0
         self._touchdown = _Touchdown(onset_stamp_ns)
@@ -631,8 +680,7 @@ class StreamingEstimator:
         inside = np.all(np.abs(etas - self._reference) <= self.settings.relevitation_band, axis=1)
         if self._left_band and not inside.any():  # on the bearing: the usual case in a touchdown
             self._band_run = 0
-            self._queue_stamps.append(stamps)
-            self._queue_etas.append(etas)
+            self._queue(stamps, etas)
             return np.empty(0, np.int64), np.empty((0, 3))
         counting = np.ones(len(inside), bool)
         if not self._left_band:
@@ -646,14 +694,52 @@ class StreamingEstimator:
         ended = np.flatnonzero(runs >= self.settings.relevitation_samples)
         stop = int(ended[0]) + 1 if ended.size else len(stamps)
         self._band_run = int(runs[stop - 1])
-        self._queue_stamps.append(stamps[:stop])
-        self._queue_etas.append(etas[:stop])
+        self._queue(stamps[:stop], etas[:stop])
         if not ended.size:
             return np.empty(0, np.int64), np.empty((0, 3))
         self._run_filter(final=True)
         self.counts.relevitations += 1
         self._end_touchdown("relevitated")
         return stamps[stop:], etas[stop:]
+
+    def _queue(self, stamps: np.ndarray, etas: np.ndarray) -> None:
+        """Queue rows for the EKF under the input policy: of a run of unusable rows (missing, refused) the
+        first bridge_gap are kept (predict-only), the rest dropped; the filter restarts at the next usable row."""
+        usable = np.isfinite(etas).all(axis=1)
+        if usable.all() and self._unusable_run == 0:  # the usual case
+            self._queue_stamps.append(stamps)
+            self._queue_etas.append(etas)
+            self._queue_restart.append(False)
+            return
+        runs = bridge_rows(usable, self._policy, self._unusable_run)
+        self._unusable_run = runs.run
+        self.counts.dropped_rows += int(np.count_nonzero(~runs.keep))
+        cuts = np.concatenate([[0], np.flatnonzero(runs.restart), [len(stamps)]])
+        for first, stop in zip(cuts[:-1], cuts[1:]):
+            kept = np.flatnonzero(runs.keep[first:stop]) + first
+            if len(kept) or first > 0:
+                self._queue_stamps.append(stamps[kept])
+                self._queue_etas.append(etas[kept])
+                self._queue_restart.append(bool(runs.restart[first]) if first < len(stamps) else False)
+
+    def _restart(self, kind: str, stamp_ns: int, why: str) -> None:
+        """A hole the policy does not bridge (long gap, clock jump): nothing allocated, the grid re-anchored
+        at the next sample; a touchdown in progress continues, its filter restarted from the data after."""
+        if self._phase == TOUCHDOWN:
+            self._run_filter(final=True)
+            self._queue_stamps.append(np.empty(0, np.int64))
+            self._queue_etas.append(np.empty((0, 3)))
+            self._queue_restart.append(True)
+            self._unusable_run = 0
+            action = "touchdown filter restarted from the data after it"
+        elif self._reference is not None:
+            self._buffer_stamps, self._buffer_etas, self._buffer_first = np.empty(0, np.int64), np.empty((0, 3)), 0
+            action = "levitated reference kept"
+        else:
+            self._start_waiting()
+            action = "levitated window started again"
+        self._clear_grid()
+        self._events.append(StreamEvent(kind, stamp_ns, f"{why}; grid re-anchored, {action}"))
 
     def _end_touchdown(self, reason: str) -> None:
         summary = self._touchdown.summary(reason)
@@ -681,20 +767,39 @@ class StreamingEstimator:
 
     # ---------------------------------------------------------------- filter
     def _run_filter(self, final: bool) -> None:
-        """Filter the queued rows in chunks; the first rows wait for the initial position."""
+        """Filter the queued rows in chunks; the first rows (of the touchdown or after a restart) wait for
+        the initial position."""
         if self._phase != TOUCHDOWN or not self._queue_stamps:
             return
-        stamps = np.concatenate(self._queue_stamps)
-        etas = np.concatenate(self._queue_etas)
+        groups: list[tuple[list[np.ndarray], list[np.ndarray], bool]] = [([], [], False)]
+        for stamps, etas, restart in zip(self._queue_stamps, self._queue_etas, self._queue_restart):
+            if restart:
+                groups.append(([], [], True))
+            groups[-1][0].append(stamps)
+            groups[-1][1].append(etas)
+        self._queue_stamps, self._queue_etas, self._queue_restart = [], [], []
+        for k, (stamps, etas, restart) in enumerate(groups):
+            if restart:
+                self._belief = None
+                self.counts.filter_restarts += 1
+                self._touchdown.restarts += 1
+            self._filter_rows(np.concatenate(stamps) if stamps else np.empty(0, np.int64),
+                              np.concatenate(etas) if etas else np.empty((0, 3)), final or k < len(groups) - 1)
+
+    def _filter_rows(self, stamps: np.ndarray, etas: np.ndarray, final: bool) -> None:
+        """Filter rows of one stretch; without a belief, wait (unless final) for the initial position."""
         if len(stamps) == 0:
             return
         if self._belief is None:
+            if not np.isfinite(etas).all(axis=1).any():
+                if not final:
+                    self._queue_stamps, self._queue_etas, self._queue_restart = [stamps], [etas], [False]
+                return  # nothing to start a filter from
             samples = self._initial_samples(etas, final)
             if samples is None:
-                self._queue_stamps, self._queue_etas = [stamps], [etas]
+                self._queue_stamps, self._queue_etas, self._queue_restart = [stamps], [etas], [False]
                 return
             self._belief = flat_belief(initial_belief(etas, self._initial_cov, samples=samples))
-        self._queue_stamps, self._queue_etas = [], []
 
         packed_parts = []
         belief, done, largest = self._belief, 0, self._sizes[-1]
@@ -725,7 +830,7 @@ class StreamingEstimator:
 
     def _check_alarm(self, out: StreamOutput) -> None:
         squared = np.einsum("ij,ij->i", out.force_xyz, out.force_xyz)
-        above = squared > self.settings.alarm_force**2
+        above = (squared > self.settings.alarm_force**2) & out.used  # measured rows only, as the peaks
         if above.any():
             magnitude = np.sqrt(squared)
             self.counts.alarm_samples += int(np.count_nonzero(above))

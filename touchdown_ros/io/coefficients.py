@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import json
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -20,6 +21,19 @@ from touchdown_ros.io.config import Config
 
 SCHEMA_VERSION = 2  # 2: the file carries its calibrated contact law and constants, kernel and filter noise
 KIND = "touchdown_ros/pkbkr_coefficients"
+#: Sections whose content the file's results depend on; `content_sha256` covers them.
+CONTENT_SECTIONS = ("contact", "kernel", "filter", "coefficients", "effects", "training")
+
+
+def content_sha256(document: Mapping[str, Any]) -> str:
+    """SHA-256 of the file's content sections (CONTENT_SECTIONS) as canonical JSON."""
+    content = {name: document.get(name) for name in CONTENT_SECTIONS}
+    return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def identity_sha256(identity: Any) -> str:
+    """SHA-256 of a `model` section, as `Config.fingerprint` computes it from the rig."""
+    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
 
 
 class CoefficientFileError(ValueError):
@@ -117,7 +131,13 @@ def save_coefficients(
             **dict(training.extra),
         },
     }
-    text = "# touchdown_ros PKBKR coefficients (paper eq. 9, 18). Edit at your own risk.\n" + yaml.safe_dump(
+    # what yaml writes and reads back (tuples become lists): the checksum is of the loaded form
+    document = yaml.safe_load(yaml.safe_dump(document, sort_keys=False))
+    document["content_sha256"] = content_sha256(document)
+    text = (
+        "# touchdown_ros PKBKR coefficients (paper eq. 9, 18). rig_fingerprint ties the file to its rig (model);\n"
+        "# content_sha256 covers contact, kernel, filter, coefficients, effects and training: an edited file is refused.\n"
+    ) + yaml.safe_dump(
         document, sort_keys=False, width=120
     )
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -144,6 +164,10 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         document = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise CoefficientFileError(f"{path}: coefficient file not found") from None
+    except IsADirectoryError:
+        raise CoefficientFileError(f"{path}: is a directory, not a coefficient file") from None
+    except OSError as error:
+        raise CoefficientFileError(f"{path}: cannot read the coefficient file: {error.strerror or error}") from None
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         raise CoefficientFileError(f"{path}: not a readable YAML coefficient file: {error}") from None
     if not isinstance(document, dict) or document.get("kind") != KIND:
@@ -151,6 +175,15 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
     if document.get("schema_version") != SCHEMA_VERSION:
         raise CoefficientFileError(
             f"{path}: schema version {document.get('schema_version')!r}, this software reads {SCHEMA_VERSION}"
+        )
+    if "rig_fingerprint" not in document:
+        raise CoefficientFileError(
+            f"{path}: no rig_fingerprint: the file cannot be tied to a rig (restore the line or retrain)"
+        )
+    if not isinstance(document.get("model"), dict) or identity_sha256(document["model"]) != document["rig_fingerprint"]:
+        raise CoefficientFileError(
+            f"{path}: the model section does not match the file's rig_fingerprint: it was edited after training "
+            "(restore it or retrain)"
         )
     if document.get("rig_fingerprint") != config.fingerprint():
         differences = _differences(document.get("model", {}), config.model_identity())
@@ -174,6 +207,21 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
     alpha_R = np.stack([rows[name] for name in RADIAL_PARAMETERS])
     alpha_Z = np.stack([rows[name] for name in AXIAL_PARAMETERS])
     training = document.get("training") or {}
+    if not isinstance(training, dict):
+        raise CoefficientFileError(f"{path}: 'training' must be a mapping")
+    regularisation = training.get("regularisation", 0.0)
+    if isinstance(regularisation, bool) or not isinstance(regularisation, (int, float)) or not np.isfinite(regularisation) or regularisation < 0:
+        raise CoefficientFileError(f"{path}: training.regularisation must be a finite number >= 0, got {regularisation!r}")
+    effects = _load_effects(path, document.get("effects"))
+    if "content_sha256" not in document:
+        raise CoefficientFileError(
+            f"{path}: no content_sha256: written by an earlier version or edited; its content cannot be checked (retrain)"
+        )
+    if document["content_sha256"] != content_sha256(document):
+        raise CoefficientFileError(
+            f"{path}: the content (sections {', '.join(CONTENT_SECTIONS)}) was edited after training: its "
+            "content_sha256 does not match; restore the file or retrain"
+        )
     record = TrainingRecord(
         bags=training.get("bags", ()),
         regularisation=training.get("regularisation", 0.0),
@@ -181,9 +229,7 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         steps=training.get("steps", 0),
         extra={k: v for k, v in training.items() if k not in ("bags", "regularisation", "final_loss", "steps")},
     )
-    return CoefficientFile(
-        Coefficients(alpha_R, alpha_Z), record, document, _load_effects(path, document.get("effects")), calibrated
-    )
+    return CoefficientFile(Coefficients(alpha_R, alpha_Z), record, document, effects, calibrated)
 
 
 def _contact_units(config: Config) -> str:

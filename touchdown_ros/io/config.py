@@ -101,7 +101,9 @@ class NodeSettings:
     sensor_range: float = 1.0e-3  # m, |value| at or beyond it is saturated
     millimetre_limit: float = 0.01  # m, |value| beyond it is taken for a value in mm
     grid_tolerance: float = 0.25  # sample periods a stamp may sit off the grid
-    max_gap: float = 0.05  # s, a longer stamp jump is a clock jump (estimator reset)
+    max_gap: float = 0.05  # s, a longer stamp jump (either way) is a clock jump (filter restarted)
+    bridge_gap: float = 0.002  # s, holes up to this are bridged by predict-only rows; longer: filter restarted
+    rail_samples: int = 10  # identical values in a row beyond half the sensor range: a sensor pinned at a rail
     resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
     relevitation_band: float = 20.0e-6  # m around the levitated mean that counts as levitated
     relevitation_window: float = 0.005  # s in the band that ends a touchdown
@@ -464,6 +466,8 @@ def _node_settings(read: _Reader) -> NodeSettings:
         millimetre_limit=read.number("node.millimetre_limit", d.millimetre_limit, positive=True),
         grid_tolerance=read.number("node.grid_tolerance", d.grid_tolerance, positive=True),
         max_gap=read.number("node.max_gap", d.max_gap, positive=True),
+        bridge_gap=read.number("node.bridge_gap", d.bridge_gap, non_negative=True),
+        rail_samples=read.integer("node.rail_samples", d.rail_samples, minimum=2),
         resync_after=read.integer("node.resync_after", d.resync_after),
         relevitation_band=read.number("node.relevitation_band", d.relevitation_band, positive=True),
         relevitation_window=read.number("node.relevitation_window", d.relevitation_window, positive=True),

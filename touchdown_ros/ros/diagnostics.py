@@ -26,7 +26,8 @@ NIS_WARN = 16.27
 #: Counts whose increase in a period makes the input status WARN.
 INPUT_PROBLEMS = (
     "duplicate", "out_of_order", "off_grid", "non_finite", "saturated", "millimetre",
-    "gaps", "missing_samples", "clock_jump_forward", "clock_jump_backward", "resyncs",
+    "gaps", "missing_samples", "long_gaps", "dropped_rows", "filter_restarts", "reference_refused",
+    "clock_jump_forward", "clock_jump_backward", "resyncs",
 )  # fmt: skip
 
 
@@ -75,6 +76,7 @@ class DiagnosticsState:
     ended: float = math.nan  # time.monotonic() when closed
     counts_at_start: dict[str, int] = field(default_factory=dict)
     messages_at_start: int = 0
+    malformed_at_start: int = 0
     latencies_ns: list[np.ndarray] = field(default_factory=list)  # sample stamp -> estimate published
     processing_ns: list[int] = field(default_factory=list)  # oldest sample of a block received -> published
     nis_sum: float = 0.0
@@ -105,13 +107,13 @@ class DiagnosticsState:
             self.alarm_peak = event.value if math.isnan(self.alarm_peak) else max(self.alarm_peak, event.value)
         self.events.append(event.message)
 
-    def close(self, counts: StreamCounts, messages: int) -> DiagnosticsState:
-        """End this period now (`counts` and `messages` as they are now); returns the next period.
+    def close(self, counts: StreamCounts, messages: int, malformed: int = 0) -> DiagnosticsState:
+        """End this period now (`counts`, `messages` and `malformed` as they are now); returns the next period.
 
         The closed state no longer changes: `statuses()` may read it in another thread.
         """
         self.ended = time.monotonic()
-        return DiagnosticsState(counts_at_start=counts.as_dict(), messages_at_start=messages,
+        return DiagnosticsState(counts_at_start=counts.as_dict(), messages_at_start=messages, malformed_at_start=malformed,
                                 radial_contact=self.radial_contact, axial_contact=self.axial_contact)
 
 
@@ -141,9 +143,11 @@ def statuses(
     out = []
 
     problems = {k: delta[k] for k in INPUT_PROBLEMS if delta[k]}
+    if malformed > state.malformed_at_start:  # this period's, not the total since start
+        problems["malformed_messages"] = malformed - state.malformed_at_start
     rate = delta["received"] / elapsed
     refused = sum(counts.rejected.values())
-    input_level = ERROR if internal_errors else WARN if problems or malformed else OK
+    input_level = ERROR if internal_errors else WARN if problems else OK
     detail = ", ".join(f"{v} {k}" for k, v in problems.items())
     failed = f"; {internal_errors} estimator failure(s), see the log" if internal_errors else ""
     out.append(
@@ -161,6 +165,10 @@ def statuses(
                 **{f"rejected.{k}": v for k, v in counts.rejected.items()},
                 "gaps": counts.gaps,
                 "missing_samples": counts.missing_samples,
+                "long_gaps": counts.long_gaps,
+                "dropped_rows": counts.dropped_rows,
+                "filter_restarts": counts.filter_restarts,
+                "reference_refused": counts.reference_refused,
                 "clock_jump_forward": counts.clock_jump_forward,
                 "clock_jump_backward": counts.clock_jump_backward,
                 "resyncs": counts.resyncs,
@@ -250,6 +258,7 @@ def statuses(
                     "peak_radial_force_N": summary.peak_radial_force,
                     "mean_nis": summary.mean_nis,
                     "end_reason": summary.end_reason,
+                    "filter_restarts": summary.filter_restarts,
                 },
                 hardware_id,
             )

@@ -65,7 +65,7 @@ from touchdown_ros.core.streaming import (
 from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
 from touchdown_ros.ros import messages
-from touchdown_ros.ros.diagnostics import ERROR, OK, DiagnosticsState, LatencyHistogram, ModelInfo, statuses
+from touchdown_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsState, LatencyHistogram, ModelInfo, statuses
 
 NODE_NAME = "touchdown_estimator"
 #: Parameters every rclpy node has; they are not part of the rig configuration.
@@ -242,6 +242,7 @@ class EstimatorNode(Node):
         # the node has no bag metadata: node.conditions says which conditional effects act now
         gates = gates_for(model.effects, {name: "true" for name in node.conditions})
         model = model._replace(effects=model.effects.with_gates(gates))
+        self.model_info = self._warn_effects_off(self.model_info, model.effects, gates)
         self.estimator = StreamingEstimator(model, self.config.noise, settings)
         # Before warm_up and the worker start: threads created later inherit the policy.
         self.scheduling = self._set_scheduling(node.realtime_priority)
@@ -339,6 +340,17 @@ class EstimatorNode(Node):
                                       "running with normal scheduling (needs CAP_SYS_NICE or an rtprio limit)")
             return f"normal (SCHED_FIFO {priority} refused: {error})"
         return f"SCHED_FIFO {priority}"
+
+    def _warn_effects_off(self, info: ModelInfo, effects, gates: tuple[float, ...]) -> ModelInfo:
+        """WARN (and log) when a conditional effect of the model is off because node.conditions does not
+        name its condition: the estimates are then those of the model without it."""
+        off = [f"{e.name} (when {e.when})" for e, gate in zip(effects.effects, gates) if gate == 0.0]
+        if not off or info.level != OK:
+            return info
+        why = (f"conditional effect(s) off: {', '.join(off)}; node.conditions {list(self.config.node.conditions)} "
+               "does not name their condition (set node.conditions:=[...] when it is on in this run)")
+        self.get_logger().warning(why)
+        return ModelInfo(WARN, f"{info.message}; {why}", {**info.values, "effects_off": ", ".join(off)})
 
     def _load_model(self, path: str):
         """(ModelInfo, Model); a bad coefficient file falls back to the constant model (the rig's effects)."""
@@ -601,7 +613,7 @@ class EstimatorNode(Node):
         """End the diagnostics period; returns the arguments of `statuses` for it. Holds the lock."""
         node = self.config.node
         period = self._diagnostics
-        self._diagnostics = period.close(self.estimator.counts, self.messages)
+        self._diagnostics = period.close(self.estimator.counts, self.messages, self.malformed)
         self._last_diagnostics = time.monotonic()
         self._event_diagnostics_due = False
         levitated = self.estimator.levitated_reference
