@@ -186,12 +186,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from touchdown_ros.evaluate import compare, cross_validate, write_tables
+    from touchdown_ros.evaluate import compare, cross_validate
     from touchdown_ros.io.coefficients import load_coefficients
-    from touchdown_ros.report import plot_evaluation
-    from touchdown_ros.train import Trainable
-
     from touchdown_ros.offline import check_training_bag
+    from touchdown_ros.train import Trainable
 
     config = _config(args)
     full = load_coefficients(args.coeffs, config)

@@ -12,6 +12,7 @@ from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import detect_drop, to_grid
+from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.training import RECORDS, Batch, make_batch, pad_records
 from touchdown_ros.io.bags import read_conditions, read_displacement
 from touchdown_ros.io.config import Config
@@ -40,7 +41,7 @@ def load_training_data(config: Config, paths: Sequence[str | Path], duration: fl
     for path in paths:
         conditions.append(read_conditions(path))
         series = read_displacement(path, config.topics.displacement)
-        grid = to_grid(series.stamps_ns, series.xyz, config.sample_period)
+        grid = to_grid(series.stamps_ns, series.xyz, config.sample_period, policy=InputPolicy.from_config(config), source=str(path))
         onset = detect_drop(
             grid.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window, config.rig.gravity
         )
