@@ -19,7 +19,7 @@ No ROS in here.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -97,16 +97,8 @@ class StreamSettings:
 
     @property
     def policy(self) -> InputPolicy:
-        """The input policy shared with the offline tools (`core.input_policy`)."""
-        return InputPolicy(
-            sample_period=self.sample_period,
-            sensor_range=self.sensor_range,
-            millimetre_limit=self.millimetre_limit,
-            rail_samples=self.rail_samples,
-            bridge_gap=self.bridge_gap,
-            max_gap=self.max_gap,
-            grid_tolerance=self.grid_tolerance,
-        )
+        """The input policy shared with the offline tools (`core.input_policy`): its fields of these settings."""
+        return InputPolicy(**{f.name: getattr(self, f.name) for f in fields(InputPolicy)})
 
     @property
     def window_samples(self) -> int:
