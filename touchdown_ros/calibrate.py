@@ -3,7 +3,7 @@ from displacement-only bags (core.calibration), with standard errors from the lo
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -126,6 +126,9 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         full[free] = x
         return full
 
+    def law_model(law: ContactLaw) -> Model:
+        return config.model()._replace(law=law)
+
     def describe(x: np.ndarray) -> str:
         values = np.exp(np.asarray(unravel(expand(x)).log_f0))
         return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
@@ -133,7 +136,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     def problem(law: ContactLaw):
         """(guess, objective of the free coordinates, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
-        guess_log, base = jnp.asarray(log_nominal(guess)), config.model()._replace(law=law)
+        guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
 
         def objective(x: np.ndarray):
             value, grad = value_and_grad(unravel(expand(x)), guess_log, base)
@@ -152,22 +155,21 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             f"calibrate {law.label}", stream, describe,
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
-            model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), config.model()._replace(law=law), noise, scales)
+            model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), law_model(law), noise, scales)
             losses = _per_bag_losses(model0, noise0, h, batch, kind)[: len(data.paths)]
             bad = [str(p) for p, v in zip(data.paths, losses) if not np.isfinite(v)] or [str(p) for p in data.paths]
             raise DivergedError(
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        screened.append((convergence.final_loss, law, x, convergence))
+        screened.append((convergence.final_loss, law, x, convergence, guess, objective))
     screened.sort(key=lambda t: t[0])
-    candidates = tuple({"law": law.label, "loss": loss, "steps": c.steps} for loss, law, _, c in screened)
-    law = screened[0][1]
+    candidates = tuple({"law": t[1].label, "loss": t[0], "steps": t[3].steps} for t in screened)
+    _, law, x, _, guess, objective = screened[0]
     if len(screened) > 1:
         print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
-    guess, objective, _ = problem(law)
     x, convergence = minimise(
-        objective, screened[0][2], settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
+        objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
     )
     require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
     theta = unravel(expand(x))
@@ -177,11 +179,9 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     sd, correlation = standard_errors(curvature, n_valid, np.asarray(prior_sd))
     relative_sd = {n: float(v) for n, v in zip(names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
-    model, fitted_noise = stage1_model_and_noise(theta, config.model()._replace(law=law), noise, scales)
-    calibrated = config.calibrated(model.nominal, law, config.kernel, fitted_noise)
-    calibrated = replace(calibrated, nominal=Nominal(*(float(v) for v in model.nominal)))
+    model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
     return Calibration(
-        config=calibrated,
+        config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
         guess=guess,
         relative_sd=relative_sd,

@@ -19,7 +19,7 @@ from touchdown_ros.core.training import Batch, loss
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
-from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, minimise, require_convergence
+from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
 from touchdown_ros.training_data import (  # noqa: F401  (TrainingData, load_training_data: the trainer's API)
     TrainingData,
     load_training_data,
@@ -113,7 +113,10 @@ def fit(
         step_hook,
     )
     if convergence.initial_loss >= DIVERGED_LOSS:
-        raise FloatingPointError("training loss is not finite at the start; check the bags and the noise settings")
+        raise DivergedError(
+            f"{', '.join(map(str, data.paths))}: the PKBKR loss is not finite at its start (the filter diverges); "
+            "check the bags and the filter noise"
+        )
     fitted = physical(theta)
     return TrainingResult(
         coeffs=fitted.coeffs,
