@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from node_throughput import cpu_seconds  # noqa: E402
+from node_throughput import cpu_seconds, shut_down  # noqa: E402
 
 THROUGHPUT = Path(__file__).parent / "node_throughput.py"
 
@@ -149,16 +148,7 @@ def soak(duration: float, rate: float, cycle_seconds: float, params: list[str], 
             "rss_max_mib": float(np.max(mib)),
         }
     finally:
-        if node.poll() is None:
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                node.kill()
-        executor.shutdown()
-        peer.destroy_node()
-        rclpy.shutdown(context=context)
-        log.close()
+        shut_down(node, executor, peer, context, log)
 
 
 def main() -> int:

@@ -161,6 +161,22 @@ def publisher_main(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------------- orchestrator
+def shut_down(node: subprocess.Popen, executor, peer, context, log) -> None:
+    """Stop the node process (SIGINT, then kill after 10 s), the peer's executor, node and context, and close the log."""
+    import rclpy
+
+    if node.poll() is None:
+        node.send_signal(signal.SIGINT)
+        try:
+            node.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            node.kill()
+    executor.shutdown()
+    peer.destroy_node()
+    rclpy.shutdown(context=context)
+    log.close()
+
+
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -321,16 +337,7 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = (), p
         stop_sink.set()
         if sink is not None:
             sink.join(timeout=5)
-        if node.poll() is None:
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                node.kill()
-        executor.shutdown()
-        peer.destroy_node()
-        rclpy.shutdown(context=context)
-        log.close()
+        shut_down(node, executor, peer, context, log)
 
 
 def _ms(value: float) -> str:
