@@ -90,3 +90,57 @@ def test_records_spread_over_devices_give_the_same_loss_and_gradient():
     np.testing.assert_allclose(float(value_s), float(value), rtol=1e-12)
     for a, b in zip(jax.tree.leaves(grad_s), jax.tree.leaves(grad)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12 * float(np.max(np.abs(b))))
+
+
+def test_held_out_blocks_are_left_out_of_the_loss_and_measured_apart():
+    """hold_out: one block in `every` per record, shifted from record to record; the fitted and
+    held-out errors are the means over their own samples and add up to the whole record's."""
+    from touchdown_ros.core.training import hold_out, output_errors
+
+    records = records_of(true_coeffs(), count=3, samples=300)
+    batch = make_batch(records, np.asarray(CONFIG.noise.initial))
+    held = hold_out(batch, block=20, every=5)
+    mask = np.asarray(held.held_out)
+    assert mask.mean() == np.float64(0.2)
+    first_held = [int(np.argmax(row)) for row in mask]
+    assert first_held == [80, 60, 40]  # block 4, then 3, then 2: a different phase per record
+    assert all(np.all(np.diff(np.flatnonzero(row)[:20]) == 1) for row in mask)  # contiguous blocks
+
+    model = CONFIG.model(true_coeffs())
+    whole, none = output_errors(model, CONFIG.noise, H, batch, kind="nll")
+    fitted, held_error = output_errors(model, CONFIG.noise, H, held, kind="nll")
+    assert np.isnan(float(none))
+    assert float(fitted) != float(whole) and np.isfinite(float(held_error))
+    np.testing.assert_allclose(0.8 * float(fitted) + 0.2 * float(held_error), float(whole), rtol=1e-12)
+    assert float(loss(true_coeffs(), CONFIG.model(), CONFIG.noise, H, held, 0.0, kind="nll")) == float(fitted)
+
+
+def test_minimise_keeps_the_step_with_the_lowest_held_out_loss_and_stops_on_patience():
+    """Early stopping: a loss that keeps falling while the held-out loss rises from the start
+    keeps the start and stops after `patience` steps; one that falls then rises keeps its minimum."""
+    import io
+
+    from scipy.optimize import rosen, rosen_der
+
+    from touchdown_ros.optimise import minimise
+
+    start = np.array([-1.2, 1.0, -0.5, 0.8])
+
+    def rising(theta):
+        return rosen(theta), rosen_der(theta), float(np.sum((theta - start) ** 2))
+
+    theta, convergence = minimise(rising, start, 200, 1e-9, "test", io.StringIO(), patience=4)
+    assert convergence.converged and convergence.kept_step == 0 and convergence.steps == 4
+    np.testing.assert_array_equal(theta, start)
+    assert convergence.final_loss == convergence.initial_loss
+
+    target = np.array([0.0, 0.0, 0.2, 0.0])
+
+    def valley(theta):
+        return rosen(theta), rosen_der(theta), float(np.sum((theta - target) ** 2))
+
+    theta, convergence = minimise(valley, start, 200, 1e-9, "test", io.StringIO(), patience=5)
+    kept = convergence.kept_step
+    assert 0 < kept < convergence.steps and convergence.held_out[kept] == min(convergence.held_out)
+    assert convergence.final_loss == convergence.history[kept - 1]
+    assert float(np.sum((theta - target) ** 2)) == min(convergence.held_out)

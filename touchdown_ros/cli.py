@@ -9,6 +9,7 @@ from typing import Sequence
 import yaml
 
 from touchdown_ros import __version__
+from touchdown_ros.core import xla
 from touchdown_ros.io.bags import BagError
 from touchdown_ros.io.coefficients import CoefficientFileError
 from touchdown_ros.io.config import ConfigError, load_config
@@ -414,6 +415,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return replay_main(argv[1:])
     args = build_parser().parse_args(argv)
+    xla.use_compilation_cache()
     try:
         return args.run(args)
     except (ConfigError, BagError, CoefficientFileError, FileExistsError, FileNotFoundError, ValueError) as error:

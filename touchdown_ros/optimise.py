@@ -23,9 +23,11 @@ class Convergence:
     final_loss: float
     seconds: float
     history: tuple[float, ...] = ()
+    kept_step: int | None = None  # the step returned, when a held-out loss chose it
+    held_out: tuple[float, ...] = ()  # held-out loss at step 0, 1, ...
 
     def as_dict(self) -> dict[str, Any]:
-        return {
+        record = {
             "converged": self.converged,
             "reason": self.reason,
             "steps": self.steps,
@@ -33,6 +35,10 @@ class Convergence:
             "final_loss": self.final_loss,
             "seconds": round(self.seconds, 2),
         }
+        if self.kept_step is not None:
+            record.update(kept_step=self.kept_step, held_out_initial=self.held_out[0],
+                          held_out_kept=self.held_out[self.kept_step])
+        return record
 
 
 class TrainingError(ValueError):
@@ -66,33 +72,56 @@ def minimise(
     stream=sys.stderr,
     describe: Callable[[np.ndarray], str] = lambda theta: "",
     on_step: Callable[[int, float, np.ndarray], None] | None = None,
+    patience: int = 0,
 ) -> tuple[np.ndarray, Convergence]:
     """L-BFGS-B from theta0 until the loss changes by less than `tolerance` (relative) or the
     projected gradient is below it, at most `max_steps` iterations; progress on `stream`.
 
-    A non-finite loss (the filter diverged at a trial point) counts as a very high one, so the
-    line search steps back instead of stopping.
+    `value_and_grad` may return a third value, a held-out loss at theta (data not in the loss).
+    Then the step with the lowest held-out loss is returned (step 0, the start, included), and
+    the minimisation also stops, converged, when it has not fallen for `patience` steps
+    (early stopping: the fit no longer generalises). A non-finite loss (the filter diverged at a
+    trial point) counts as a very high one, so the line search steps back instead of stopping.
     """
     start = time.perf_counter()
     history: list[float] = []
-    last: dict[bytes, tuple[float, np.ndarray]] = {}  # L-BFGS asks again for the point it starts from
+    held_out: list[float] = []
+    best: dict[str, Any] = {}
+    last: dict[bytes, tuple] = {}  # L-BFGS asks again for the point it starts from
 
-    def fun(theta: np.ndarray) -> tuple[float, np.ndarray]:
+    def evaluate(theta: np.ndarray) -> tuple:
         key = theta.tobytes()
         if key not in last:
-            value, grad = value_and_grad(theta)
+            value, grad, *monitored = value_and_grad(theta)
             if not (np.isfinite(value) and np.all(np.isfinite(grad))):
-                value, grad = DIVERGED_LOSS, np.zeros_like(theta)
+                value, grad, monitored = DIVERGED_LOSS, np.zeros_like(theta), [np.inf] * len(monitored)
             last.clear()
-            last[key] = float(value), np.asarray(grad, dtype=float)
+            last[key] = (float(value), np.asarray(grad, dtype=float), *map(float, monitored))
         return last[key]
+
+    def fun(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        return evaluate(theta)[:2]
+
+    def watch(step: int, theta: np.ndarray) -> str:
+        """Record the held-out loss of this step; stop when it has not fallen for `patience` steps."""
+        monitored = evaluate(theta)[2:]
+        if not monitored:
+            return ""
+        held_out.append(monitored[0])
+        if not best or monitored[0] < best["loss"]:
+            best.update(loss=monitored[0], step=step, theta=np.array(theta))
+        elif patience and step - best["step"] >= patience:
+            best["stopped"] = True
+            raise StopIteration
+        return f"  held-out {monitored[0]:.7g}"
 
     def callback(intermediate_result) -> None:
         history.append(float(intermediate_result.fun))
         step = len(history)
         elapsed = time.perf_counter() - start
+        held = watch(step, intermediate_result.x) if held_out else ""
         print(
-            f"[{label} step {step}/<={max_steps}] loss {intermediate_result.fun:.7g}{describe(intermediate_result.x)}  "
+            f"[{label} step {step}/<={max_steps}] loss {intermediate_result.fun:.7g}{held}{describe(intermediate_result.x)}  "
             f"{elapsed:.1f} s elapsed",
             file=stream,
             flush=True,
@@ -100,13 +129,15 @@ def minimise(
         if on_step is not None:
             on_step(step, float(intermediate_result.fun), intermediate_result.x)
 
-    initial_loss = fun(np.asarray(theta0, dtype=float))[0]
+    theta0 = np.asarray(theta0, dtype=float)
+    initial_loss = fun(theta0)[0]
+    watch(0, theta0)
     print(f"[{label} step 0] loss {initial_loss:.7g} (compiled in {time.perf_counter() - start:.1f} s)", file=stream, flush=True)
     if max_steps == 0:
         return theta0, Convergence(False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start)
     result = scipy.optimize.minimize(
         fun,
-        np.asarray(theta0, dtype=float),
+        theta0,
         jac=True,
         method="L-BFGS-B",
         callback=callback,
@@ -120,15 +151,20 @@ def minimise(
         if change < 10.0 * tolerance:
             converged = True
             reason += f" (the line search found no lower loss; the last steps changed it by {change:.1e}: at its noise floor)"
+    theta, final_loss, kept_step = np.asarray(result.x), float(result.fun), None
+    if best:
+        if best.get("stopped"):
+            converged = True
+            reason = f"the held-out loss did not fall for {patience} steps after step {best['step']}"
+        theta, kept_step = best["theta"], best["step"]
+        final_loss = history[kept_step - 1] if kept_step else initial_loss
+        reason += f"; kept step {kept_step}, the lowest held-out loss"
+    steps = len(history)
     convergence = Convergence(
-        converged, reason, int(result.nit), initial_loss, float(result.fun), time.perf_counter() - start, tuple(history)
+        converged, reason, steps, initial_loss, final_loss, time.perf_counter() - start, tuple(history), kept_step, tuple(held_out)
     )
-    print(
-        f"[{label}] {'converged' if converged else 'NOT converged'} after {result.nit} steps: {reason}",
-        file=stream,
-        flush=True,
-    )
-    return np.asarray(result.x), convergence
+    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}", file=stream, flush=True)
+    return theta, convergence
 
 
 def hessian(objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4) -> np.ndarray:

@@ -15,7 +15,7 @@ from jax.flatten_util import ravel_pytree
 from touchdown_ros.calibrate import Calibration, calibrate
 from touchdown_ros.core.calibration import apply_scales, contact_samples, effect_scales, filtered_states, kernel_from_data
 from touchdown_ros.core.effects import Effects
-from touchdown_ros.core.training import Batch, loss
+from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
@@ -49,17 +49,19 @@ class Trainable(NamedTuple):
 
 
 def make_objective(config: Config, regularisation: float) -> Callable:
-    """Jitted (loss, gradient) of eq. 18 in (coefficients, scaled effect parameters), the records
-    spread over `record_mesh()`; the batch is an argument (`place`d on that mesh), so batches of
-    one shape (e.g. cross-validation folds) share one compilation."""
+    """Jitted ((loss, held-out loss), gradient of the loss) of eq. 18 in (coefficients, scaled effect
+    parameters), the records spread over `record_mesh()`; the batch is an argument (`place`d on that
+    mesh), so batches of one shape (e.g. cross-validation folds) share one compilation."""
     model, mesh, kind = config.model(), record_mesh(), config.training.loss
 
-    def objective(trainable: Trainable, scales: Effects, batch: Batch) -> jax.Array:
+    def objective(trainable: Trainable, scales: Effects, batch: Batch) -> tuple[jax.Array, jax.Array]:
         effects = apply_scales(trainable.effects, scales)
         noise = config.training_noise()
-        return loss(trainable.coeffs, model, noise, config.sample_period, batch, regularisation, effects, mesh, kind)
+        return loss_and_held_out(
+            trainable.coeffs, model, noise, config.sample_period, batch, regularisation, effects, mesh, kind
+        )
 
-    return jax.jit(jax.value_and_grad(objective))
+    return jax.jit(jax.value_and_grad(objective, has_aux=True))
 
 
 def fit(
@@ -76,6 +78,9 @@ def fit(
 ) -> TrainingResult:
     """Stage 2: minimise eq. 18 (with the rig's `training.loss`) with L-BFGS from `initial`
     (default: all alpha = 0, the constant model, and the rig's effects at their configured values).
+    One block of samples in every `training.held_out_every` is left out of the loss; the step where
+    their error is lowest is kept (the start included), and the fit stops when it has not fallen
+    for `training.patience` steps.
 
     objective: a `make_objective` result to reuse; length: pad records to this many samples;
     tolerance: stop criterion (default `training.tolerance`).
@@ -83,7 +88,9 @@ def fit(
     if initial is None or isinstance(initial, Coefficients):
         initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
     scales = effect_scales(initial.effects)
-    batch = training_batch(config, data, initial.effects, length)
+    settings = config.training
+    block = max(1, round(settings.held_out_block / config.sample_period))
+    batch = hold_out(training_batch(config, data, initial.effects, length), block, settings.held_out_every)
     note_ungated(initial.effects, batch, stream)
     objective = objective or make_objective(config, regularisation)
     theta0, unravel = ravel_pytree(Trainable(initial.coeffs, apply_scales(initial.effects, scales, inverse=True)))
@@ -95,8 +102,9 @@ def fit(
         return Trainable(scaled.coeffs, apply_scales(scaled.effects, scales))
 
     def value_and_grad(theta: np.ndarray):
-        value, grad = objective(unravel(theta), scales, batch)
-        return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
+        (value, held_out), grad = objective(unravel(theta), scales, batch)
+        gradient = np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
+        return (float(value), gradient, float(held_out)) if settings.held_out_every > 1 else (float(value), gradient)
 
     def describe(theta: np.ndarray) -> str:
         return "".join(f"  {e}.{k} {v:.5g}" for e, p in physical(theta).effects.values().items() for k, v in p.items())
@@ -111,6 +119,7 @@ def fit(
         stream,
         describe,
         step_hook,
+        settings.patience,
     )
     if convergence.initial_loss >= DIVERGED_LOSS:
         raise DivergedError(

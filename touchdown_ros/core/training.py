@@ -42,6 +42,7 @@ class Batch(NamedTuple):
     initial_cov: Array  # (B, 7, 7)
     valid: Array  # (B, L) bool, sample present and counted in the loss
     gates: Array  # (B, E) which of the model's E effects act in each record (1 on, 0 off)
+    held_out: Array  # (B, L) bool, sample filtered but counted in the held-out error, not the loss
 
 
 def make_batch(
@@ -64,8 +65,27 @@ def make_batch(
     valid = np.all(np.isfinite(etas), axis=-1)
     gates = np.asarray(gates if gates is not None else [()] * len(records), dtype=float).reshape(len(records), -1)
     return Batch(
-        jnp.asarray(etas), jnp.asarray(np.array(means)), jnp.asarray(np.array(covs)), jnp.asarray(valid), jnp.asarray(gates)
+        jnp.asarray(etas),
+        jnp.asarray(np.array(means)),
+        jnp.asarray(np.array(covs)),
+        jnp.asarray(valid),
+        jnp.asarray(gates),
+        jnp.zeros(valid.shape, dtype=bool),
     )
+
+
+def hold_out(batch: Batch, block: int, every: int) -> Batch:
+    """The batch with one block of `block` samples in every `every` held out of the loss (`held_out`).
+
+    The filter still runs through the held-out samples, so their one-step errors measure how
+    well the model predicts data it was not fitted to. The pattern is shifted by one block from
+    record to record, so that drops of similar timing do not all hold out the same phase.
+    """
+    if every < 2:
+        return batch
+    records, length = batch.valid.shape
+    blocks = np.arange(length)[None, :] // block + np.arange(records)[:, None]
+    return batch._replace(held_out=jnp.asarray(blocks % every == every - 1))
 
 
 LOSSES = ("one_step", "nll")
@@ -105,33 +125,44 @@ def sample_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind
     return jnp.where(batch.valid, value, 0.0)
 
 
-def squared_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str = "one_step") -> Array:
-    """Sum over valid samples of the output error (`sample_errors`)."""
-    return jnp.sum(sample_errors(model, noise, h, batch, kind))
+def _fitted_and_held_out_sums(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str) -> Array:
+    """(2,) sums of the output error over the fitted and the held-out valid samples."""
+    errors = sample_errors(model, noise, h, batch, kind)
+    return jnp.stack([jnp.sum(jnp.where(batch.held_out, 0.0, errors)), jnp.sum(jnp.where(batch.held_out, errors, 0.0))])
+
+
+def output_errors(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None, kind: str = "one_step"
+) -> tuple[Array, Array]:
+    """Mean output error (`sample_errors`; one_step: in units of the noise variance) over the fitted
+    and over the held-out valid samples (`hold_out`; NaN when none is held out), from one filter pass.
+
+    With a mesh (one axis, `RECORDS`), each device filters its share of the records in its
+    own loop and the sums are added (the batch size must be a multiple of the mesh size:
+    `pad_records`); the same numbers as without.
+    """
+    if mesh is None:
+        totals = _fitted_and_held_out_sums(model, noise, h, batch, kind)
+    else:
+
+        def share(local: Model, local_noise: FilterNoise, records: Batch) -> Array:
+            return jax.lax.psum(_fitted_and_held_out_sums(local, local_noise, h, records, kind), RECORDS)
+
+        # check_vma off: the identity cotangents of dynamics.phi_and_jacobian are built
+        # inside and carry no varying-axis type; nothing here is replicated across devices.
+        totals = jax.shard_map(
+            share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=P(), check_vma=False
+        )(jax.tree.map(jnp.asarray, model), jax.tree.map(jnp.asarray, noise), batch)
+    held = batch.valid & batch.held_out
+    held_count = jnp.sum(held)
+    return totals[0] / jnp.sum(batch.valid & ~batch.held_out), jnp.where(held_count > 0, totals[1] / held_count, jnp.nan)
 
 
 def output_error(
     model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None, kind: str = "one_step"
 ) -> Array:
-    """Mean output error over valid samples (`sample_errors`; one_step: in units of the noise variance).
-
-    With a mesh (one axis, `RECORDS`), each device filters its share of the records in its
-    own loop and the sums are added (the batch size must be a multiple of the mesh size:
-    `pad_records`); the same number as without.
-    """
-    if mesh is None:
-        total = squared_errors(model, noise, h, batch, kind)
-    else:
-
-        def share(local: Model, local_noise: FilterNoise, records: Batch) -> Array:
-            return jax.lax.psum(squared_errors(local, local_noise, h, records, kind), RECORDS)
-
-        # check_vma off: the identity cotangents of dynamics.phi_and_jacobian are built
-        # inside and carry no varying-axis type; nothing here is replicated across devices.
-        total = jax.shard_map(
-            share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=P(), check_vma=False
-        )(jax.tree.map(jnp.asarray, model), jax.tree.map(jnp.asarray, noise), batch)
-    return total / jnp.sum(batch.valid)
+    """Mean output error over the fitted valid samples (`output_errors`)."""
+    return output_errors(model, noise, h, batch, mesh, kind)[0]
 
 
 def pad_records(batch: Batch, multiple: int) -> Batch:
@@ -148,6 +179,25 @@ def pad_records(batch: Batch, multiple: int) -> Batch:
     return padded._replace(valid=padded.valid.at[-extra:].set(False))
 
 
+def loss_and_held_out(
+    coeffs: Coefficients,
+    model: Model,
+    noise: FilterNoise,
+    h: float,
+    batch: Batch,
+    lam: float,
+    effects: Effects | None = None,
+    mesh: Mesh | None = None,
+    kind: str = "one_step",
+) -> tuple[Array, Array]:
+    """Eq. 18 with the output error `kind` normalised as in output_errors, and the held-out output
+    error (not part of the loss); `effects` (with their physical parameters, not penalised) replace
+    the model's when given; `mesh` spreads the records over devices (`output_errors`)."""
+    trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
+    fitted, held_out = output_errors(trained, noise, h, batch, mesh, kind)
+    return fitted + lam * rkhs_distance(model.kernel, coeffs), held_out
+
+
 def loss(
     coeffs: Coefficients,
     model: Model,
@@ -159,8 +209,5 @@ def loss(
     mesh: Mesh | None = None,
     kind: str = "one_step",
 ) -> Array:
-    """Eq. 18 with the output error `kind` normalised as in output_error; `effects` (with their
-    physical parameters, not penalised) replace the model's when given; `mesh` spreads the
-    records over devices (`output_error`)."""
-    trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
-    return output_error(trained, noise, h, batch, mesh, kind) + lam * rkhs_distance(model.kernel, coeffs)
+    """Eq. 18 (`loss_and_held_out` without the held-out error)."""
+    return loss_and_held_out(coeffs, model, noise, h, batch, lam, effects, mesh, kind)[0]

@@ -16,6 +16,12 @@ Host devices. XLA shows the CPU as one device unless asked for more; the trainer
 splits the records of a batch over one device per usable core (`shard_map` in
 `core.training`), each filtering its share in its own loop. Everything else runs on
 the first device as before.
+
+Compilation cache. The trainer's losses take 15-30 s to compile; `use_compilation_cache`
+(called by the `touchdown` command and the node) keeps compiled programs on disk, so a
+second run of the same shapes starts at once. `TOUCHDOWN_XLA_CACHE` names the folder
+(default `$XDG_CACHE_HOME/touchdown_ros/xla`, i.e. ~/.cache/...; at most 1 GiB, the least
+recently used dropped first); `off` switches it off.
 """
 from __future__ import annotations
 
@@ -49,6 +55,34 @@ def with_host_devices(xla_flags: str, count: int) -> str:
 def usable_cores() -> int:
     """Cores this process may run on."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+CACHE_VARIABLE = "TOUCHDOWN_XLA_CACHE"
+CACHE_BYTES = 1 << 30  # least recently used programs are dropped beyond this
+
+
+def compilation_cache_dir(environ: dict[str, str] | None = None) -> str | None:
+    """Folder of the persistent compilation cache from the environment (None: switched off)."""
+    environ = os.environ if environ is None else environ
+    chosen = environ.get(CACHE_VARIABLE, "")
+    if chosen.lower() == "off":
+        return None
+    if chosen:
+        return chosen
+    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "touchdown_ros", "xla")
+
+
+def use_compilation_cache() -> str | None:
+    """Keep programs that took over a second to compile in `compilation_cache_dir()`; its path."""
+    import jax
+
+    directory = compilation_cache_dir()
+    if directory is not None:
+        jax.config.update("jax_compilation_cache_dir", directory)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
+    return directory
 
 
 def configure() -> None:

@@ -59,6 +59,9 @@ class TrainingSettings:
     calibration_steps: int = 200  # cap on stage-1 L-BFGS iterations (it stops at convergence first)
     pkbkr_steps: int = 200  # cap on stage-2 L-BFGS iterations
     tolerance: float = 1.0e-6  # relative loss change, and gradient norm, that count as converged
+    held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
+    held_out_block: float = 0.005  # s, length of those blocks
+    patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
 
 
 @dataclass(frozen=True)
@@ -398,6 +401,9 @@ def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
         calibration_steps=read.integer("training.calibration_steps", d.calibration_steps),
         pkbkr_steps=read.integer("training.pkbkr_steps", d.pkbkr_steps, minimum=0),
         tolerance=read.number("training.tolerance", d.tolerance, positive=True),
+        held_out_every=read.integer("training.held_out_every", d.held_out_every, minimum=0),
+        held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
+        patience=read.integer("training.patience", d.patience, minimum=1),
     )
 
 
