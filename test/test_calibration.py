@@ -36,6 +36,14 @@ def test_sensor_noise_from_levitated_samples_ignores_the_orbit():
     assert np.isnan(sensor_noise(samples[:15])).all()  # too few samples: not measured
 
 
+def test_laws_are_screened_on_bags_spread_over_the_list():
+    from touchdown_ros.calibrate import spread
+
+    assert spread(21, 6) == [0, 4, 8, 12, 16, 20]
+    assert spread(3, 6) == [0, 1, 2] and spread(21, 0) == list(range(21))
+    assert spread(7, 2) == [0, 6]
+
+
 def test_hertz_force_and_guess_conversion():
     law = ContactLaw.of("hertz", 1.5)
     d, rate = 30e-6, 0.05

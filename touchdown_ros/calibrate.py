@@ -108,9 +108,6 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             theta, guess, settings.prior_width, law_model, noise, scales, h, records, kind, mesh
         )
 
-    def value_and_grad(theta: Stage1, guess: Array, law_model: Model):
-        return batch_value_and_grad(theta, guess, law_model, batch)
-
     template, unravel = ravel_pytree(Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(2), apply_scales(effects, scales, inverse=True)))
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
     flags = Stage1(
@@ -133,39 +130,45 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         values = np.exp(np.asarray(unravel(expand(x)).log_f0))
         return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
 
-    def problem(law: ContactLaw):
-        """(guess, objective of the free coordinates, their start) for one contact law."""
+    def problem(law: ContactLaw, records: Batch):
+        """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
 
         def objective(x: np.ndarray):
-            value, grad = value_and_grad(unravel(expand(x)), guess_log, base)
+            value, grad = batch_value_and_grad(unravel(expand(x)), guess_log, base, records)
             return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[free]
 
         x0 = full0.copy()
         x0[: len(PARAMETER_NAMES)] = np.asarray(guess_log)
         return guess, objective, x0[free]
 
-    # Screen every candidate law to a loose tolerance, then refine the best one.
+    # Screen every candidate law to a loose tolerance on a few bags, then refine the best on all.
+    screening = spread(len(data.records), settings.screening_bags)
+    screen_batch = batch if len(screening) == len(data.records) else training_batch(config, data.subset(screening), effects)
+    if screen_batch is not batch:
+        print(f"contact laws screened on {len(screening)} of the {len(data.records)} bags", file=stream)
     screened = []
     for law in settings.contact_laws:
-        guess, objective, x0 = problem(law)
+        guess, objective, x0 = problem(law, screen_batch)
         x, convergence = minimise(
             objective, x0, settings.calibration_steps, max(settings.tolerance, SCREEN_TOLERANCE),
             f"calibrate {law.label}", stream, describe,
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), law_model(law), noise, scales)
-            losses = _per_bag_losses(model0, noise0, h, batch, kind)[: len(data.paths)]
-            bad = [str(p) for p, v in zip(data.paths, losses) if not np.isfinite(v)] or [str(p) for p in data.paths]
+            paths = [data.paths[i] for i in screening]
+            losses = _per_bag_losses(model0, noise0, h, screen_batch, kind)[: len(paths)]
+            bad = [str(p) for p, v in zip(paths, losses) if not np.isfinite(v)] or [str(p) for p in paths]
             raise DivergedError(
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        screened.append((convergence.final_loss, law, x, convergence, guess, objective))
+        screened.append((convergence.final_loss, law, x, convergence, guess))
     screened.sort(key=lambda t: t[0])
     candidates = tuple({"law": t[1].label, "loss": t[0], "steps": t[3].steps} for t in screened)
-    _, law, x, _, guess, objective = screened[0]
+    _, law, x, _, guess = screened[0]
+    objective = problem(law, batch)[1]
     if len(screened) > 1:
         print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
     x, convergence = minimise(
@@ -191,6 +194,13 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+def spread(count: int, most: int) -> list[int]:
+    """Indices of at most `most` of `count` items, evenly spread from the first to the last (all if most < 1)."""
+    if most < 1 or count <= most:
+        return list(range(count))
+    return sorted({int(i) for i in np.round(np.linspace(0, count - 1, most))})
 
 
 def _effect_names(effects: Effects) -> list[str]:

@@ -57,6 +57,7 @@ class TrainingSettings:
     reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
     placement: str = "data"  # kernel centres: data (from the calibrated estimates) | fixed (kernel.* grid)
     calibration_steps: int = 200  # cap on stage-1 L-BFGS iterations (it stops at convergence first)
+    screening_bags: int = 6  # stage 1 screens the contact laws on this many bags, spread over all (< 1: all)
     pkbkr_steps: int = 200  # cap on stage-2 L-BFGS iterations
     tolerance: float = 1.0e-6  # relative loss change, and gradient norm, that count as converged
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
@@ -399,6 +400,7 @@ def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
         reference_deformation=read.number("training.reference_deformation", d.reference_deformation, positive=True),
         placement=read.choice("kernel.placement", d.placement, PLACEMENTS),
         calibration_steps=read.integer("training.calibration_steps", d.calibration_steps),
+        screening_bags=read.integer("training.screening_bags", d.screening_bags, minimum=0),
         pkbkr_steps=read.integer("training.pkbkr_steps", d.pkbkr_steps, minimum=0),
         tolerance=read.number("training.tolerance", d.tolerance, positive=True),
         held_out_every=read.integer("training.held_out_every", d.held_out_every, minimum=0),
