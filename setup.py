@@ -17,6 +17,7 @@ setup(
     python_requires=">=3.10",
     install_requires=[
         "jax>=0.4.30",
+        "filelock",
         "numpy",
         "scipy",
         "matplotlib",

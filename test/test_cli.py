@@ -1,7 +1,9 @@
 """The `touchdown` command end to end, through real bags written and read back."""
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,6 +97,21 @@ def test_help_of_every_subcommand():
             [sys.executable, "-m", "touchdown_ros.cli", command, "--help"], capture_output=True, text=True, check=True
         )
         assert "usage: touchdown " + command in result.stdout
+
+
+def test_the_command_keeps_compiled_programs_in_the_cache_folder_unless_switched_off(drop_bags, tmp_path):
+    """The persistent compilation cache: by default under $XDG_CACHE_HOME/touchdown_ros/xla;
+    TOUCHDOWN_XLA_CACHE=off keeps none."""
+
+    def estimate(out: str, **env: str) -> None:
+        environment = {k: v for k, v in os.environ.items() if k != "TOUCHDOWN_XLA_CACHE"} | env
+        command = [sys.executable, "-m", "touchdown_ros.cli", "estimate", str(drop_bags / "exp_11"), "--no-figures"]
+        subprocess.run([*command, "-o", str(tmp_path / out)], env=environment, capture_output=True, check=True)
+
+    estimate("with_cache", XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    assert len(list((tmp_path / "xdg" / "touchdown_ros" / "xla").iterdir())) >= 2  # filter and smoother at least
+    estimate("without_cache", XDG_CACHE_HOME=str(tmp_path / "xdg_off"), TOUCHDOWN_XLA_CACHE="off")
+    assert (tmp_path / "without_cache").is_dir() and not (tmp_path / "xdg_off" / "touchdown_ros").exists()
 
 
 def test_simulated_bag_carries_displacement_and_truth(drop_bags):
