@@ -1,5 +1,8 @@
 """Cost of `touchdown train` on the paper's 21-bag campaign: stage 1 alone and both stages to
 convergence, wall time including JAX compilation and peak memory, each run in its own process.
+Each run starts with an empty compilation cache (TOUCHDOWN_XLA_CACHE, a fresh folder), and the
+defaults run once more on the cache the first filled ("warm": what a second `train` of the
+same shapes costs).
 
     .venv/bin/python bench/calibration_cost.py [--bags DIR] [--runs 1] [--with COMMIT_CHECKOUT]
 
@@ -47,14 +50,23 @@ def main() -> int:
             subprocess.run([python, "-m", "touchdown_ros.cli", "simulate", "--campaign", "-o", str(bags_dir)], check=True)
         bags = [str(b) for b in sorted(bags_dir.glob("exp_*"))]
         out = str(Path(tmp) / "c.yaml")
+        train = [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER]
+        filled = {"cache": ""}  # the folder the last cold run of the defaults filled
+
+        def with_cache(folder: str) -> dict[str, str]:
+            return dict(os.environ, TOUCHDOWN_XLA_CACHE=folder)
+
+        def cold(*extra: str) -> dict:
+            filled["cache"] = tempfile.mkdtemp(dir=tmp, prefix="cache-")
+            return timed([*train, *extra], env=with_cache(filled["cache"]))
+
         cases = {
-            "stage 1 only (--steps 0)": lambda: timed([python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out,
-                                                      "--overwrite", "--steps", "0", *LOADER]),
-            "stage 1 + stage 2 to convergence (defaults)": lambda: timed(
-                [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER]),
+            "stage 1 only (--steps 0), cold cache": lambda: cold("--steps", "0"),
+            "stage 1 + stage 2 (defaults), cold cache": cold,
+            "stage 1 + stage 2 (defaults), warm cache": lambda: timed(train, env=with_cache(filled["cache"])),
         }
         if args.other is not None:
-            env = dict(os.environ, PYTHONPATH=str(args.other))
+            env = dict(os.environ, PYTHONPATH=str(args.other), TOUCHDOWN_XLA_CACHE="off")
             cases[f"{args.other}: 40 steps (its default)"] = lambda: timed(
                 [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", "--steps", "40", *LOADER],
                 env=env, cwd=str(args.other))
