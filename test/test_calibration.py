@@ -123,7 +123,10 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     v, rig, coeffs, summary = trained_rig
     document = yaml.safe_load(coeffs.read_text())
     calibration = document["training"]["calibration"]
-    assert calibration["converged"] and document["training"]["pkbkr"]["converged"]
+    pkbkr = document["training"]["pkbkr"]
+    assert calibration["converged"] and pkbkr["converged"]
+    # stage 2 kept the step with the lowest held-out error, and recorded it
+    assert 0 <= pkbkr["kept_step"] <= pkbkr["steps"] and pkbkr["held_out_kept"] <= pkbkr["held_out_initial"]
     assert set(calibration["relative_standard_error"]) >= {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"}
     assert len(calibration["candidates"]) == 3  # linear, hertz 1.5, hertz 10/9 were each fitted
     # the stiffness moved far from the reference guess (5e8 N/m) to what the rig is

@@ -177,8 +177,12 @@ def cmd_train(args: argparse.Namespace) -> int:
             + (f"; held by the prior: {', '.join(calibration.held_by_prior)}" if calibration.held_by_prior else "")
         )
     converged = pkbkr.convergence is not None and pkbkr.convergence.converged
+    kept = pkbkr.convergence.kept_step if pkbkr.convergence is not None else None
+    kept_note = "" if kept is None else (
+        f", kept step {kept} by the held-out error" if kept else ", no step lowered the held-out error: PKBKR alpha = 0 kept"
+    )
     print(
-        f"stage 2 ({'converged' if converged else 'NOT converged'}, {pkbkr.steps} steps): loss "
+        f"stage 2 ({'converged' if converged else 'NOT converged'}, {pkbkr.steps} steps{kept_note}): loss "
         f"{pkbkr.initial_loss:.6g} -> {pkbkr.final_loss:.6g}; mean NIS per bag "
         f"{min(outcome.mean_nis):.2f}-{max(outcome.mean_nis):.2f} (3 when consistent)"
     )
