@@ -118,8 +118,8 @@ def sensed_drop():
 
 def _estimate(record, config):
     estimator = make_estimator(config.model(), config.noise, config.sample_period)
-    estimate, _ = estimate_record(config, split_record(record.stamps_ns, record.measured, InputPolicy.from_config(config)),
-                                  estimator)
+    record_input = split_record(record.stamps_ns, record.measured, InputPolicy.from_config(config))
+    estimate, _ = estimate_record(config, record_input, estimator)
     rows = np.searchsorted(record.stamps_ns, estimate.stamps_ns)
     return estimate, rows
 
@@ -173,7 +173,8 @@ def test_training_loss_is_least_at_the_true_sensor_error():
     for kind in ("one_step", "nll"):
         @jax.jit
         def value(gain, offset):
-            effects = model.effects.with_values({"sensor_gain_z": {"gain": gain}, "sensor_offset_z": {"offset": offset}})
+            values = {"sensor_gain_z": {"gain": gain}, "sensor_offset_z": {"offset": offset}}
+            effects = model.effects.with_values(values)
             return loss(model.coeffs, model, noise, h, batch, 0.0, effects, kind=kind)
 
         assert value(GAIN, OFFSET) < 0.5 * value(1.0, 0.0), kind
@@ -186,7 +187,8 @@ def test_live_chunk_filter_equals_the_offline_filter_with_a_measurement_effect()
 
     from touchdown_ros.core.streaming import StreamingEstimator, StreamSettings, estimate_stream, make_chunk_filter
 
-    sensor = fx.build(SENSOR["effects.active"], {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_z": {"offset": OFFSET}})
+    values = {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_z": {"offset": OFFSET}}
+    sensor = fx.build(SENSOR["effects.active"], values)
     config = dataclasses.replace(CONFIG, effects=sensor)
     stamps, measured = _sensed_model_drop(config)
     reference = offline(stamps, measured, config)

@@ -34,7 +34,14 @@ from jax import Array
 
 from touchdown_ros.core.dynamics import contact_forces, phi, rk4, rk4_step
 from touchdown_ros.core.effects import FORCE, Effect, regressors
-from touchdown_ros.core.ekf import Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, with_jacobian
+from touchdown_ros.core.ekf import (
+    Belief,
+    Transition,
+    extended_kalman_filter,
+    model_measurement,
+    rts_smoother,
+    with_jacobian,
+)
 from touchdown_ros.core.types import STATE_SIZE, Model
 
 #: 99 % two-sided band of a white sequence's normalised autocorrelation: +-Z99 / sqrt(N).

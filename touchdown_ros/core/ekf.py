@@ -169,7 +169,8 @@ def model_measurement(model: Model) -> Measurement:
 
 
 def predict_with_rate(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array, Array, Array]:
-    """`predict` with the model's f, plus phi and d phi / d xi at the filtered mean: (next prior, Phi, phi(xi), dphi/dxi).
+    """`predict` with the model's f, plus phi and d phi / d xi at the filtered mean:
+    (next prior, Phi, phi(xi), dphi/dxi).
 
     The first RK4 stage is what the filtered signals need (acceleration phi(xi)[4:] and
     its Jacobian for the covariance): the live estimator takes them from here instead of

@@ -89,7 +89,7 @@ def simulate_drop(
         raise FloatingPointError(f"experiment {condition.number}: the simulation diverged; check the simulator constants")
 
     position = states[:, :3]
-    gain, offset = (np.array([params.scalars[f"sensor_{kind}_{axis}"] for axis in "xyz"]) for kind in ("gain", "offset"))
+    gain, offset = (np.array([params.scalars[f"sensor_{error}_{a}"] for a in "xyz"]) for error in ("gain", "offset"))
     measured = sensor(position, config.noise_rms, config.quantisation, rng, gain, offset)
     period_ns = int(round(period * 1e9))
     offset_s = (condition.number - 1) * params.scalars["experiment_interval"]
