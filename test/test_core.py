@@ -15,7 +15,7 @@ from touchdown_ros.core.dynamics import (
     step_with_jacobian,
     transition_jacobian,
 )
-from touchdown_ros.core.ekf import Belief, ekf, predict, predict_with_rate, rts_smoother
+from touchdown_ros.core.ekf import Belief, ekf, model_transition, predict, predict_with_rate, rts_smoother
 from touchdown_ros.core.estimate import GridError, detect_drop, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
@@ -220,7 +220,7 @@ def test_predict_with_rate_is_predict_plus_phi_and_its_jacobian(case):
     model = make_model(random_coeffs(7))
     belief = Belief(jnp.array(CASES[case]), jnp.diag(jnp.array([1e-10, 2e-10, 3e-10, 1.0, 1e-4, 2e-4, 3e-4])))
     Q = jnp.diag(jnp.array([1e-14, 1e-14, 1e-14, 1e-8, 1e-8, 1e-8, 1e-8]))
-    expected, expected_Phi = predict(model, belief, Q, 1e-4)
+    expected, expected_Phi = predict(belief, Q, model_transition(model, 1e-4))
     got, Phi, rate, rate_jacobian = predict_with_rate(model, belief, Q, 1e-4)
     np.testing.assert_array_equal(np.asarray(got.mean), np.asarray(expected.mean))
     np.testing.assert_allclose(np.asarray(got.cov), np.asarray(expected.cov), rtol=1e-12, atol=0)

@@ -21,6 +21,7 @@ import numpy as np
 
 from touchdown_ros.core import diagnostics as dg
 from touchdown_ros.core import effects as fx
+from touchdown_ros.core.dynamics import measurement as expected_output
 from touchdown_ros.core.ekf import Belief
 from touchdown_ros.core.estimate import PAD_BUCKET, initial_belief
 from touchdown_ros.core.metrics import rmse
@@ -48,7 +49,7 @@ class Settings:
 class BagDiagnosis:
     path: Path
     result: BagEstimate
-    k_step: np.ndarray  # (N, 3) m, k-step-ahead predicted position
+    k_step: np.ndarray  # (N, 3) m, k-step-ahead predicted measurement h(xi)
     missing: dg.MissingForce  # numpy fields
     phase: np.ndarray  # (N,) 0..3 (dg.PHASES)
     impact: np.ndarray  # (N,) impact number, 0 before the first
@@ -75,24 +76,24 @@ class Diagnosis:
 class _Compiled:
     """Jitted k-step prediction, disturbance smoother and regressors; the model is an argument,
     so one compilation serves every model of the same structure (`_compiled` caches them per
-    rig and settings), and records are padded to PAD_BUCKET samples so bags of similar length
+    settings), and records are padded to PAD_BUCKET samples so bags of similar length
     share it too."""
 
-    def __init__(self, h: float, k: int, force_walk: float, process: tuple, measurement: tuple, rig):
+    def __init__(self, h: float, k: int, force_walk: float, process: tuple, measurement: tuple):
         process, measurement = np.asarray(process), np.asarray(measurement)
-        self.k_step = jax.jit(lambda m, s: dg.k_step_predictions(m, s, h, k))
+        self.k_step = jax.jit(lambda m, s: jax.vmap(lambda x: expected_output(m, x))(dg.k_step_predictions(m, s, h, k)))
         self.smooth = jax.jit(
             lambda m, init, etas: dg.disturbance_smoother(m, process, measurement, init, etas, h, force_walk)
         )
         self.coefficient_regressors = jax.jit(dg.coefficient_regressors)
         self.effect_regressors = {
-            name: jax.jit(lambda s, e=e: dg.effect_regressors(e, s, rig)) for name, e in fx.LIBRARY.items()
+            name: jax.jit(lambda m, s, e=e: dg.effect_regressors(e, s, m)) for name, e in fx.LIBRARY.items()
         }
 
 
 @functools.lru_cache(maxsize=4)
-def _compiled_for(h: float, k: int, force_walk: float, process: tuple, measurement: tuple, rig) -> _Compiled:
-    return _Compiled(h, k, force_walk, process, measurement, rig)
+def _compiled_for(h: float, k: int, force_walk: float, process: tuple, measurement: tuple) -> _Compiled:
+    return _Compiled(h, k, force_walk, process, measurement)
 
 
 def _compiled(config: Config, settings: Settings) -> _Compiled:
@@ -103,7 +104,6 @@ def _compiled(config: Config, settings: Settings) -> _Compiled:
         float(settings.force_walk),
         tuple(float(v) for v in np.asarray(noise.process)),
         tuple(float(v) for v in np.asarray(noise.measurement)),
-        config.rig,
     )
 
 
@@ -123,7 +123,7 @@ def _diagnose_bag(config: Config, path: Path, estimator, compiled: _Compiled, se
     n = len(est.measured)
     model = estimator.model._replace(effects=bag_effects(config, path, estimator.model.effects))
     filtered = np.asarray(est.filtered.state)
-    k_step = np.asarray(compiled.k_step(model, jnp.asarray(_pad(filtered, repeat=True))))[:n, :3]
+    k_step = np.asarray(compiled.k_step(model, jnp.asarray(_pad(filtered, repeat=True))))[:n]
     init = initial_belief(est.measured, np.asarray(config.noise.initial))
     missing = compiled.smooth(model, init, jnp.asarray(_pad(est.measured)))
     missing = dg.MissingForce(*(np.asarray(a)[:n] for a in missing))
@@ -249,7 +249,7 @@ def _ranking(config: Config, bags: Sequence[BagDiagnosis], compiled: _Compiled) 
         C = np.asarray(compiled.coefficient_regressors(b.model, states))[:n]
         forced.append((C * weight[..., None]).reshape(3 * n, -1))
         for name, function in compiled.effect_regressors.items():
-            J, f0 = (np.asarray(a)[:n] for a in function(states))
+            J, f0 = (np.asarray(a)[:n] for a in function(b.model, states))
             blocks[name].append((J * weight[..., None]).reshape(3 * n, -1))
             js[name].append(J)
             f0s[name].append(f0)

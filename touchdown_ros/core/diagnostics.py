@@ -11,17 +11,20 @@ Pure functions over arrays (no ROS, no files):
 - `contact_phase`, `impact_numbers`, `binned_rms`, `windowed_rms`: where it fails.
 - `disturbance_smoother`: the missing force. The state is augmented with three force
   states d (N, random walk) acting on the rotor besides the model's forces; the EKF +
-  Rauch-Tung-Striebel smoother over the record give d(t) with its standard deviation.
+  Rauch-Tung-Striebel smoother of `core.ekf` over that augmented phi (RK4 by
+  `dynamics.rk4`, the model's measurement h) give d(t) with its standard deviation.
   The data, not the model, decide d: what the model lacks, per axis, with uncertainty.
 - `frols`: which effect is missing. Orthogonal forward regression (Billings' FROLS) of the
   missing force on candidate regressor blocks (one block per candidate effect: its force's
-  derivative with respect to its parameters, `core.effects.regressors`), after the terms
+  derivative with respect to its parameters, `core.effects.regressors`; a measurement
+  effect enters by the force it stands for, `force_equivalent`), after the terms
   the model can already adjust (forced first: the PKBKR coefficients' regressors), ranked
   by error-reduction ratio, with the fitted parameters and their standard errors.
 - `spectrum_peak`, `harmonic_share`: the residual's signature when no candidate explains it.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple, Sequence
 
 import jax
@@ -29,9 +32,17 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4_step
-from touchdown_ros.core.ekf import Belief, StepOutput, rts_smoother, update
-from touchdown_ros.core.types import Model
+from touchdown_ros.core.dynamics import contact_forces, phi, rk4, rk4_step
+from touchdown_ros.core.effects import FORCE, Effect, regressors
+from touchdown_ros.core.ekf import (
+    Belief,
+    Transition,
+    extended_kalman_filter,
+    model_measurement,
+    rts_smoother,
+    with_jacobian,
+)
+from touchdown_ros.core.types import STATE_SIZE, Model
 
 #: 99 % two-sided band of a white sequence's normalised autocorrelation: +-Z99 / sqrt(N).
 Z99 = 2.576
@@ -175,22 +186,16 @@ class MissingForce(NamedTuple):
     model_force: Array  # (N, 3) N, the model's contact + effect forces at the smoothed state
 
 
-def _augmented_step(model: Model, h: float):
+def augmented_transition(model: Model, h: float) -> Transition:
+    """RK4 step (h, s) of the state s = (xi, d) augmented with a force d (3,), N, on the rotor that
+    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd)."""
     mass = model.rig.mass
 
     def phi_aug(s: Array) -> Array:
-        d = s[7:]
-        rate = phi(model, s[:7])
-        return jnp.concatenate([rate.at[4:].add(d / mass), jnp.zeros(3, s.dtype)])
+        rate = phi(model, s[:STATE_SIZE])
+        return jnp.concatenate([rate.at[4:].add(s[STATE_SIZE:] / mass), jnp.zeros(3, s.dtype)])
 
-    def f(s: Array) -> Array:
-        k1 = h * phi_aug(s)
-        k2 = h * phi_aug(s + 0.5 * k1)
-        k3 = h * phi_aug(s + 0.5 * k2)
-        k4 = h * phi_aug(s + k3)
-        return s + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
-
-    return f
+    return with_jacobian(lambda s: rk4(phi_aug, s, h))
 
 
 def model_force(model: Model, xi: Array) -> Array:
@@ -215,27 +220,20 @@ def disturbance_smoother(
     """EKF + RTS smoother of the state augmented with a force d (3,) on the rotor (random walk
     of force_walk N rms per sample, starting at 0 +- force_initial N). Returns d(t) with its
     standard deviation: the force the model lacks, decided by the data."""
-    f = _augmented_step(model, h)
     Q = jnp.diag(jnp.concatenate([jnp.asarray(process), jnp.full(3, force_walk**2)]))
     R = jnp.diag(jnp.asarray(measurement))
     mean0 = jnp.concatenate([initial.mean, jnp.zeros(3)])
     cov0 = jax.scipy.linalg.block_diag(initial.cov, force_initial**2 * jnp.eye(3))
-
-    def body(prior: Belief, eta: Array):
-        filtered, innovation, S, used = update(prior, eta, R)
-        Phi = jax.jacfwd(f)(filtered.mean)
-        next_prior = Belief(f(filtered.mean), Phi @ filtered.cov @ Phi.T + Q)
-        return next_prior, StepOutput(prior, filtered, innovation, S, Phi, used)
-
-    _, outputs = jax.lax.scan(body, Belief(mean0, cov0), jnp.asarray(etas))
+    transition, measure = augmented_transition(model, h), model_measurement(model)
+    outputs = extended_kalman_filter(transition, measure, Q, R, Belief(mean0, cov0), jnp.asarray(etas))
     smoothed = rts_smoother(outputs)
-    state = smoothed.mean[:, :7]
+    state = smoothed.mean[:, :STATE_SIZE]
     forces = jax.vmap(lambda s: model_force(model, s))(state)
     return MissingForce(
         force=smoothed.mean[:, 7:],
         force_std=jnp.sqrt(jnp.diagonal(smoothed.cov, axis1=1, axis2=2)[:, 7:]),
         state=state,
-        state_cov=smoothed.cov[:, :7, :7],
+        state_cov=smoothed.cov[:, :STATE_SIZE, :STATE_SIZE],
         model_force=forces,
     )
 
@@ -421,16 +419,44 @@ def coefficient_regressors(model: Model, states: Array) -> Array:
     return jax.vmap(lambda xi: jax.jacfwd(force)(flat, xi))(jnp.asarray(states))
 
 
-def effect_regressors(effect, states: Array, rig, values: dict | None = None) -> tuple[Array, Array]:
+def force_equivalent(effect: Effect, model: Model) -> Effect:
+    """A measurement effect as the force it stands for; a force effect as it is.
+
+    A measurement effect that changes the sensor output by D(xi) (m) makes a model without it
+    follow the state xi + (D, 0, dD/dt), whose motion needs the extra force (first order in D)
+    m (d^2 D / dt^2 - A (D, 0, dD/dt)), A = d phi[4:] / d xi, the time derivatives along the
+    model's phi: what the missing force shows of it. E.g. a z gain g in free flight: the constant
+    -(g - 1) m g_0; a z offset: zero in free flight, the contact stiffness times it in contact.
+    """
+    if effect.kind == FORCE:
+        return effect
+    mass = model.rig.mass
+
+    def rate(xi: Array) -> Array:
+        return phi(model, xi)
+
+    def force(xi: Array, params, rig) -> Array:
+        def change_rate(state: Array) -> Array:
+            return jax.jvp(lambda s: effect.function(s, params, rig), (state,), (rate(state),))[1]
+
+        change = jnp.asarray(effect.function(xi, params, rig), xi.dtype)
+        change_velocity, change_acceleration = jax.jvp(change_rate, (xi,), (rate(xi),))
+        shift = jnp.concatenate([change, jnp.zeros(1, xi.dtype), change_velocity])
+        _, acceleration_shift = jax.jvp(lambda s: rate(s)[4:], (xi,), (shift,))
+        return mass * (change_acceleration - acceleration_shift)
+
+    return dataclasses.replace(effect, function=force, kind=FORCE)
+
+
+def effect_regressors(effect: Effect, states: Array, model: Model, values: dict | None = None) -> tuple[Array, Array]:
     """(N, 3, p) d force / d parameters of one candidate effect along the states, linearised at
     `values` (default: its defaults), and (N, 3) its force there (for the offset of
-    nonlinear-in-parameter effects)."""
-    from touchdown_ros.core.effects import regressors
-
+    nonlinear-in-parameter effects). A measurement effect's force is `force_equivalent`'s."""
+    effect, rig = force_equivalent(effect, model), model.rig
     p0 = values or effect.defaults()
     params = {k: jnp.asarray(v) for k, v in p0.items()}
     J = jax.vmap(lambda xi: regressors(effect, xi, rig, p0))(jnp.asarray(states))
-    f0 = jax.vmap(lambda xi: jnp.asarray(effect.force(xi, params, rig), dtype=xi.dtype))(jnp.asarray(states))
+    f0 = jax.vmap(lambda xi: jnp.asarray(effect.function(xi, params, rig), dtype=xi.dtype))(jnp.asarray(states))
     return J, f0
 
 

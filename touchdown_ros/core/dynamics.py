@@ -1,4 +1,5 @@
-"""The paper's touchdown model: contact forces (eq. 5-8), phi (eq. 12) and the RK4 step f (eq. 15).
+"""The paper's touchdown model: contact forces (eq. 5-8), phi (eq. 12), the RK4 step f (eq. 15)
+and the measurement h (eq. 15f: the sensor reads x, y, z, plus any measurement effects).
 
 One deliberate sign choice: eq. 6c prints F_zR = mu sign(zdot) F_nR, which with
 eq. 4c (zddot = F_z / m - g) would push the rotor along its axial velocity. Friction
@@ -6,12 +7,15 @@ opposes sliding, so here F_zR = -mu sign(zdot) F_nR.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 from jax import Array
 
+from touchdown_ros.core.effects import FORCE, MEASUREMENT
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
-from touchdown_ros.core.types import THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
+from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
 
 
 def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -104,7 +108,7 @@ def phi(model: Model, xi: Array) -> Array:
     theta = xi[THETA]
     F_x, F_y, F_z = forces.F_x, forces.F_y, forces.F_z
     effects = getattr(model, "effects", None)
-    if effects:  # static: no effects -> the paper's phi, unchanged
+    if effects and effects.acts_on(FORCE):  # static: no force effects -> the paper's phi, unchanged
         extra = effects.force(xi, rig)
         F_x, F_y, F_z = F_x + extra[0], F_y + extra[1], F_z + extra[2]
     return jnp.stack(
@@ -120,13 +124,31 @@ def phi(model: Model, xi: Array) -> Array:
     )
 
 
-def rk4_step(model: Model, xi: Array, h: float) -> Array:
-    """f of eq. 15: one classical Runge-Kutta step of length h (s)."""
-    k1 = h * phi(model, xi)
-    k2 = h * phi(model, xi + 0.5 * k1)
-    k3 = h * phi(model, xi + 0.5 * k2)
-    k4 = h * phi(model, xi + k3)
+def measures(model: Model) -> bool:
+    """Whether the model has measurement effects (static): without, h(xi) = (x, y, z) exactly."""
+    return bool(model.effects) and model.effects.acts_on(MEASUREMENT)
+
+
+def measurement(model: Model, xi: Array) -> Array:
+    """h(xi): the sensor output (3,), m, expected at state xi: (x, y, z) plus the measurement effects."""
+    position = xi[:OUTPUT_SIZE]
+    if measures(model):
+        return position + model.effects.measurement(xi, model.rig)
+    return position
+
+
+def rk4(rate: Callable[[Array], Array], xi: Array, h: float) -> Array:
+    """One classical Runge-Kutta step of length h (s) of d xi / dt = rate(xi) (eq. 15)."""
+    k1 = h * rate(xi)
+    k2 = h * rate(xi + 0.5 * k1)
+    k3 = h * rate(xi + 0.5 * k2)
+    k4 = h * rate(xi + k3)
     return xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+
+
+def rk4_step(model: Model, xi: Array, h: float) -> Array:
+    """f of eq. 15: one RK4 step of phi, of length h (s)."""
+    return rk4(lambda state: phi(model, state), xi, h)
 
 
 def transition_jacobian(model: Model, xi: Array, h: float) -> Array:

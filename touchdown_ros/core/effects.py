@@ -1,22 +1,28 @@
-"""Add-on physical effects: named force terms added to the paper's model (issue #5).
+"""Add-on physical effects: named terms added to the paper's model (issue #5, #16).
 
-An effect is a plain jnp function ``force(xi, params, rig) -> (3,)``: the force on the
-rotor in N along the sensor x, y, z axes at state xi = [x y z theta xdot ydot zdot],
-with ``params`` a dict name -> scalar of its physical parameters and ``rig`` the
-`Rig`. `dynamics.phi` adds sum(forces) / m to the accelerations.
+An effect is a plain jnp function ``function(xi, params, rig) -> (3,)`` at state
+xi = [x y z theta xdot ydot zdot], with ``params`` a dict name -> scalar of its physical
+parameters and ``rig`` the `Rig`. Its `kind` says where it acts:
+
+- ``"force"``: the force on the rotor in N along the sensor x, y, z axes;
+  `dynamics.phi` adds sum(forces) / m to the accelerations;
+- ``"measurement"``: the change of the sensor's output in m; the measurement model is
+  h(xi) = (x, y, z) + sum(changes) (`dynamics.measurement`), used by the EKF's update.
 
 `Effects` is the JAX container held by `Model.effects`: the functions (and names) are
 static aux data, the parameter values are traced children, so jit/grad/vmap see the
 parameters and a change of which effects are active recompiles. With no effects
-(the default) phi is the paper's model unchanged, at the same cost.
+(the default) phi and h are the paper's model unchanged, at the same cost.
 
-Library (`LIBRARY`): axial_load, radial_load, magnetic_stiffness, contact_exponent,
-viscous_friction, contact_angle_coupling, brake_decay. Not modelled here: a sensor
-offset acts on the measurement, not on the dynamics; it is left out.
+Library (`LIBRARY`): force effects axial_load, radial_load, magnetic_stiffness,
+contact_exponent, viscous_friction, contact_angle_coupling, brake_decay; measurement
+effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
+gain * position + offset on that axis.
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
-(default, unit, description)) or via the `effect` decorator below.
+(default, unit, description)) and, for a measurement effect, ``kind = "measurement"``,
+or is made by the `effect` decorator below.
 """
 from __future__ import annotations
 
@@ -33,30 +39,38 @@ from jax import Array
 # state indices as in core.types (not imported: types imports this module)
 X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
 
-ForceFunction = Callable[[Array, Mapping[str, Array], object], Array]
+EffectFunction = Callable[[Array, Mapping[str, Array], object], Array]
 ENTRY_POINT_GROUP = "touchdown_ros.effects"
+FORCE, MEASUREMENT = "force", "measurement"
+KINDS = (FORCE, MEASUREMENT)
 
 
 @dataclass(frozen=True)
 class Effect:
-    """A named force term with named physical parameters (name -> (default, unit, description))."""
+    """A named term with named physical parameters (name -> (default, unit, description)): a force
+    on the rotor (N) or a change of the sensor output (m), by `kind`."""
 
     name: str
-    force: ForceFunction
+    function: EffectFunction
     parameters: Mapping[str, tuple[float, str, str]]
     description: str = ""
     source: str = ""  # how to find it again: a library name, "module:function" or an entry point name
     when: str = ""  # the bag condition that switches it on (condition.<when> true); "" acts always
+    kind: str = FORCE  # one of KINDS
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"effect {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
 
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
 
 
-def effect(name: str, parameters: Mapping[str, tuple[float, str, str]], description: str = ""):
-    """Decorator making a plain force function into an `Effect` (usable by dotted path)."""
+def effect(name: str, parameters: Mapping[str, tuple[float, str, str]], description: str = "", kind: str = FORCE):
+    """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path)."""
 
-    def wrap(function: ForceFunction) -> Effect:
-        return Effect(name=name, force=function, parameters=dict(parameters), description=description or (function.__doc__ or ""))
+    def wrap(function: EffectFunction) -> Effect:
+        return Effect(name, function, dict(parameters), description or (function.__doc__ or ""), kind=kind)
 
     return wrap
 
@@ -117,12 +131,24 @@ class Effects:
         """The same effects switched on (1) or off (0) each; gates may be a traced (n,) array."""
         return Effects(self.effects, self.params, tuple(gates[i] for i in range(len(self.effects))))
 
-    def force(self, xi: Array, rig) -> Array:
-        """Sum of the active effects' forces (3,), N, each times its gate."""
+    def acts_on(self, kind: str) -> bool:
+        """Whether an effect of `kind` is among them (static: decides what is traced)."""
+        return any(e.kind == kind for e in self.effects)
+
+    def _sum(self, kind: str, xi: Array, rig) -> Array:
         total = jnp.zeros(3, dtype=xi.dtype)
         for e, p, gate in zip(self.effects, self.params, self.gates):
-            total = total + gate * jnp.asarray(e.force(xi, p, rig), dtype=xi.dtype)
+            if e.kind == kind:
+                total = total + gate * jnp.asarray(e.function(xi, p, rig), dtype=xi.dtype)
         return total
+
+    def force(self, xi: Array, rig) -> Array:
+        """Sum of the active force effects (3,), N, each times its gate."""
+        return self._sum(FORCE, xi, rig)
+
+    def measurement(self, xi: Array, rig) -> Array:
+        """Sum of the active measurement effects' changes of the sensor output (3,), m, each times its gate."""
+        return self._sum(MEASUREMENT, xi, rig)
 
 
 def gates_for(effects: Effects, conditions: Mapping[str, str]) -> tuple[float, ...]:
@@ -191,6 +217,21 @@ def _brake_decay(xi, p, rig):
     return jnp.stack([a * jnp.cos(xi[THETA]), a * jnp.sin(xi[THETA]), 0.0 * xi[Z]])
 
 
+def _sensor_error(axis: int, parameter: str, change: Callable[[Array, Array], Array]) -> EffectFunction:
+    def function(xi, p, rig):
+        return jnp.zeros(3, xi.dtype).at[axis].set(change(p[parameter], xi[axis]))
+
+    return function
+
+
+#: Sensor errors per axis a, each a measurement effect sensor_<parameter>_<a>: parameter ->
+#: (default, unit, description, change of the output (value, displacement along a) -> m).
+_SENSOR_ERRORS = {
+    "gain": (1.0, "1", "scale error of the {a} sensor: it reads gain * {a}", lambda gain, d: (gain - 1.0) * d),
+    "offset": (0.0, "m", "zero error of the {a} sensor: it reads {a} + offset", lambda offset, d: offset + 0.0 * d),
+}
+
+
 LIBRARY: dict[str, Effect] = {
     e.name: e
     for e in (
@@ -226,6 +267,17 @@ LIBRARY: dict[str, Effect] = {
             _contact_angle_coupling.__doc__,
         ),
         Effect("brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")}, _brake_decay.__doc__),
+        *(
+            Effect(
+                f"sensor_{parameter}_{a}",
+                _sensor_error(axis, parameter, change),
+                {parameter: (default, unit, text.format(a=a))},
+                text.format(a=a).capitalize() + ".",
+                kind=MEASUREMENT,
+            )
+            for parameter, (default, unit, text, change) in _SENSOR_ERRORS.items()
+            for axis, a in enumerate("xyz")
+        ),
     )
 }
 
@@ -253,7 +305,7 @@ def _lookup(spec: str) -> Effect:
             parameters = getattr(obj, "parameters", None)
             if not parameters:
                 raise ValueError(f"effect {spec!r}: the function needs a 'parameters' attribute (name -> (default, unit, text))")
-            return Effect(name=attr, force=obj, parameters=dict(parameters), description=obj.__doc__ or "")
+            return Effect(attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE))
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name == spec:
@@ -273,7 +325,7 @@ def build(names, values: Mapping[str, Mapping[str, float]] | None = None) -> Eff
 
 
 def regressors(effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None) -> Array:
-    """d force / d parameters at xi: (3, n_params), for linear-in-parameter ranking (diagnose)."""
+    """d function / d parameters at xi: (3, n_params), N (force) or m (measurement) per parameter unit."""
     p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}
-    jac = jax.jacfwd(lambda p: effect_.force(xi, p, rig))(p0)
+    jac = jax.jacfwd(lambda p: effect_.function(xi, p, rig))(p0)
     return jnp.stack([jac[k] for k in p0], axis=-1)

@@ -1,24 +1,35 @@
 """Extended Kalman filter (eq. 17) and Rauch-Tung-Striebel smoother, as pure functions.
 
+Like dynamax's filters, the filter takes its model as two functions of the state: a
+transition xi -> (f(xi), Phi = df/dxi) (eq. 15, 16) and a measurement xi -> (h(xi),
+H = dh/dxi) (eq. 15f); `with_jacobian` makes either from a plain function by forward-mode
+automatic differentiation. `ekf` and `ekf_step` run the touchdown model with them
+(`model_transition`, `model_measurement`).
+
 Convention: the carried belief is the prior of the current sample; a step updates it
-with the sample's measurement (eq. 17b-c, e-f) and predicts the next prior (eq. 17a, d)
-with Phi_k from automatic differentiation (eq. 16). A sample with any non-finite value
-is not used: the step only predicts. Covariances are symmetrised after each update.
+with the sample's measurement (eq. 17b-c, e-f) and predicts the next prior (eq. 17a, d).
+A sample with any non-finite value is not used: the step only predicts. Covariances
+are symmetrised after each update.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import Array
 
-from touchdown_ros.core.dynamics import step_with_jacobian, step_with_jacobian_and_rate
-from touchdown_ros.core.types import OUTPUT_SIZE, FilterNoise, Model
+from touchdown_ros.core.dynamics import measurement, measures, step_with_jacobian, step_with_jacobian_and_rate
+from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
+
+#: xi -> (f(xi), Phi): the next state's mean and df/dxi (eq. 15, 16).
+Transition = Callable[[Array], tuple[Array, Array]]
+#: xi -> (h(xi), H): the expected measurement (m) and dh/dxi (eq. 15f).
+Measurement = Callable[[Array], tuple[Array, Array]]
 
 
 class Belief(NamedTuple):
-    """Gaussian belief over the state: mean (7,) and covariance (7, 7)."""
+    """Gaussian belief over the state: mean (n,) and covariance (n, n); n = 7 for the model's xi."""
 
     mean: Array
     cov: Array
@@ -29,10 +40,20 @@ class StepOutput(NamedTuple):
 
     prior: Belief  # xi_{k,-}, P_{k,-}
     filtered: Belief  # xi_k, P_k
-    innovation: Array  # eta_k - H xi_{k,-}, m (NaN when the sample was not used)
+    innovation: Array  # eta_k - h(xi_{k,-}), m (NaN when the sample was not used)
     innovation_cov: Array  # H P_{k,-} H^T + R
     Phi: Array  # df/dxi at xi_k, maps this sample to the next
     used: Array  # bool, measurement used
+
+
+def with_jacobian(function: Callable[[Array], Array]) -> Callable[[Array], tuple[Array, Array]]:
+    """x -> (function(x), d function / d x) by forward-mode automatic differentiation."""
+    return lambda x: (function(x), jax.jacfwd(function)(x))
+
+
+def position(xi: Array) -> tuple[Array, Array]:
+    """The paper's measurement (eq. 15f): h(xi) = (x, y, z), H = [I 0]."""
+    return xi[:OUTPUT_SIZE], jnp.eye(OUTPUT_SIZE, xi.shape[0], dtype=xi.dtype)
 
 
 def inverse_and_det_3x3(A: Array) -> tuple[Array, Array]:
@@ -50,16 +71,22 @@ def _inverse_3x3(A: Array) -> Array:
     return inverse_and_det_3x3(A)[0]
 
 
-def update(belief: Belief, eta: Array, R: Array) -> tuple[Belief, Array, Array, Array]:
+def update(
+    belief: Belief, eta: Array, R: Array, measure: Measurement = position
+) -> tuple[Belief, Array, Array, Array]:
     """Measurement update (eq. 17b, c, e, f); skipped when eta is not finite.
 
-    H selects x, y, z, so H P is the first three rows of P.
+    With `position` (H = [I 0]) H P is taken as the first three rows of P, without a product.
     """
     used = jnp.all(jnp.isfinite(eta))
-    predicted_output = belief.mean[:OUTPUT_SIZE]
+    if measure is position:
+        predicted_output, HP = belief.mean[:OUTPUT_SIZE], belief.cov[:OUTPUT_SIZE]
+        S = HP[:, :OUTPUT_SIZE] + R
+    else:
+        predicted_output, H = measure(belief.mean)
+        HP = H @ belief.cov
+        S = HP @ H.T + R
     innovation = jnp.where(used, eta, predicted_output) - predicted_output
-    HP = belief.cov[:OUTPUT_SIZE]
-    S = HP[:, :OUTPUT_SIZE] + R
     K = HP.T @ _inverse_3x3(S)  # eq. 17e
     cov = belief.cov - K @ HP  # eq. 17f
     filtered = Belief(belief.mean + K @ innovation, 0.5 * (cov + cov.T))
@@ -67,32 +94,29 @@ def update(belief: Belief, eta: Array, R: Array) -> tuple[Belief, Array, Array, 
     return filtered, jnp.where(used, innovation, jnp.nan), S, used
 
 
-def predict(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array]:
+def predict(belief: Belief, Q: Array, transition: Transition) -> tuple[Belief, Array]:
     """Time update (eq. 17a, d): xi_{k+1,-} = f(xi_k), P_{k+1,-} = Phi P Phi^T + Q."""
-    mean, Phi = step_with_jacobian(model, belief.mean, h)
+    mean, Phi = transition(belief.mean)
     return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi
 
 
-def predict_with_rate(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array, Array, Array]:
-    """`predict`, plus phi and d phi / d xi at the filtered mean: (next prior, Phi, phi(xi), dphi/dxi).
-
-    The first RK4 stage is what the filtered signals need (acceleration phi(xi)[4:] and
-    its Jacobian for the covariance): the live estimator takes them from here instead of
-    evaluating phi and its Jacobian at xi a second time. Equal to `predict` (the same operations).
-    """
-    mean, Phi, rate, rate_jacobian = step_with_jacobian_and_rate(model, belief.mean, h)
-    return Belief(mean, Phi @ belief.cov @ Phi.T + Q), Phi, rate, rate_jacobian
-
-
-def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
+def filter_step(
+    transition: Transition, measure: Measurement, Q: Array, R: Array, prior: Belief, eta: Array
+) -> tuple[Belief, StepOutput]:
     """One sample: update the prior with eta (3,), m, then predict the next prior."""
-    filtered, innovation, S, used = update(prior, eta, jnp.diag(noise.measurement))
-    next_prior, Phi = predict(model, filtered, jnp.diag(noise.process), h)
+    filtered, innovation, S, used = update(prior, eta, R, measure)
+    next_prior, Phi = predict(filtered, Q, transition)
     return next_prior, StepOutput(prior, filtered, innovation, S, Phi, used)
 
 
-def ekf(
-    model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array, checkpoint: bool = False
+def extended_kalman_filter(
+    transition: Transition,
+    measure: Measurement,
+    Q: Array,
+    R: Array,
+    initial: Belief,
+    etas: Array,
+    checkpoint: bool = False,
 ) -> StepOutput:
     """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N.
 
@@ -102,7 +126,7 @@ def ekf(
     """
 
     def body(prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
-        return ekf_step(model, noise, h, prior, eta)
+        return filter_step(transition, measure, Q, R, prior, eta)
 
     if checkpoint:
         body = jax.checkpoint(body)
@@ -127,3 +151,47 @@ def rts_smoother(outputs: StepOutput) -> Belief:
     earlier = (jax.tree.map(lambda a: a[:-1], filtered), Phi[:-1], next_priors)
     _, smoothed = jax.lax.scan(body, last, earlier, reverse=True)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), smoothed, last)
+
+
+# ---------------------------------------------------------------- the touchdown model's filter
+
+def model_transition(model: Model, h: float) -> Transition:
+    """The model's RK4 step f (eq. 15) of length h (s) with Phi by the chain rule through its stages (eq. 16)."""
+    return lambda xi: step_with_jacobian(model, xi, h)
+
+
+def model_measurement(model: Model) -> Measurement:
+    """The model's h (eq. 15f and its measurement effects): `position` when it has none. h reads the
+    model's xi, the first 7 entries of a longer (augmented) state."""
+    if not measures(model):
+        return position
+    return with_jacobian(lambda state: measurement(model, state[:STATE_SIZE]))
+
+
+def predict_with_rate(model: Model, belief: Belief, Q: Array, h: float) -> tuple[Belief, Array, Array, Array]:
+    """`predict` with the model's f, plus phi and d phi / d xi at the filtered mean:
+    (next prior, Phi, phi(xi), dphi/dxi).
+
+    The first RK4 stage is what the filtered signals need (acceleration phi(xi)[4:] and
+    its Jacobian for the covariance): the live estimator takes them from here instead of
+    evaluating phi and its Jacobian at xi a second time. Equal to `predict` (the same operations).
+    """
+    mean, Phi, rate, rate_jacobian = step_with_jacobian_and_rate(model, belief.mean, h)
+    next_prior, _ = predict(belief, Q, lambda _: (mean, Phi))
+    return next_prior, Phi, rate, rate_jacobian
+
+
+def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
+    """`filter_step` with the model's f and h and the noise's Q and R."""
+    Q, R = jnp.diag(noise.process), jnp.diag(noise.measurement)
+    return filter_step(model_transition(model, h), model_measurement(model), Q, R, prior, eta)
+
+
+def ekf(
+    model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array, checkpoint: bool = False
+) -> StepOutput:
+    """`extended_kalman_filter` with the model's f and h and the noise's Q and R."""
+    Q, R = jnp.diag(noise.process), jnp.diag(noise.measurement)
+    return extended_kalman_filter(
+        model_transition(model, h), model_measurement(model), Q, R, initial, etas, checkpoint
+    )

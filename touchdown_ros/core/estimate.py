@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces_and_jacobian, phi
+from touchdown_ros.core.dynamics import contact_forces_and_jacobian, measurement, phi
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
@@ -46,7 +46,7 @@ class Estimate(NamedTuple):
     measured: np.ndarray  # (N, 3) m, NaN where missing
     filtered: SignalSet
     smoothed: SignalSet
-    predicted_output: Array  # (N, 3) H xi_{k,-}: one-step prediction, m
+    predicted_output: Array  # (N, 3) h(xi_{k,-}): one-step prediction, m
     innovation: Array  # (N, 3) m
     innovation_cov: Array  # (N, 3, 3)
     nis: Array  # (N,) normalised innovation squared
@@ -177,7 +177,7 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         return (
             signals(model, outputs.filtered),
             signals(model, smoothed),
-            outputs.prior.mean[:, :3],
+            jax.vmap(lambda xi: measurement(model, xi))(outputs.prior.mean),
             outputs.innovation,
             outputs.innovation_cov,
             nis,

@@ -28,7 +28,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
-from touchdown_ros.core.ekf import Belief, _inverse_3x3, predict_with_rate, update
+from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.input_policy import InputPolicy, bridge_rows, value_flags, window_is_clean
 from touchdown_ros.core.types import FilterNoise, Model
@@ -288,9 +288,10 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     (bench/chunk_dispatch.py).
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
+    measure = model_measurement(model)
 
     def row(prior: Belief, eta: Array) -> tuple[Belief, Array]:
-        filtered, innovation, S, used = update(prior, eta, R)
+        filtered, innovation, S, used = update(prior, eta, R, measure)
         next_prior, _, rate, rate_jacobian = predict_with_rate(model, filtered, Q, sample_period)
         J = rate_jacobian[4:]
         forces, J_force = contact_forces_and_jacobian(model, filtered.mean)

@@ -3,10 +3,11 @@
 Two output errors, both from the one-step predictions of eq. 17b (the filtered
 estimate alone would follow the data whatever the model), per valid sample:
 
-- ``one_step`` (eq. 18 as published): |eta_k - H xi_{k,-}|^2 / sigma^2, the squared
-  prediction error in units of the sensor noise variance;
+- ``one_step`` (eq. 18 as published): |eta_k - h(xi_{k,-})|^2 / sigma^2, the squared
+  prediction error in units of the sensor noise variance (h = H xi, H = [I 0], without
+  measurement effects);
 - ``nll``: the innovation negative log-likelihood nu^T S^-1 nu + ln det(S R^-1), times 2
-  and without constants, with S = H P_{k,-} H^T + R from the filter: the same number as
+  and without constants, with S = H P_{k,-} H^T + R from the filter (H = dh/dxi): the same number as
   ``one_step`` where S = R, but it weighs each sample by what the filter expects and
   can also fit Q.
 
@@ -92,8 +93,9 @@ LOSSES = ("one_step", "nll")
 
 
 def innovations(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
-    """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample), and
-    (B, L, 3, 3) their covariances S_k, m^2."""
+    """(B, L, 3) one-step prediction errors eta_k - h(xi_{k,-}), m (NaN where no sample), and
+    (B, L, 3, 3) their covariances S_k, m^2; f and h are the model's (its force and measurement
+    effects gated per record)."""
 
     def one(etas: Array, mean: Array, cov: Array, gates: Array) -> tuple[Array, Array]:
         gated = model._replace(effects=model.effects.with_gates(gates))
@@ -104,7 +106,7 @@ def innovations(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tup
 
 
 def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
-    """(B, L, 3) one-step prediction errors eta_k - H xi_{k,-}, m (NaN where no sample)."""
+    """(B, L, 3) one-step prediction errors eta_k - h(xi_{k,-}), m (NaN where no sample)."""
     return innovations(model, noise, h, batch)[0]
 
 

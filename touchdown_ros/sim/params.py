@@ -36,6 +36,8 @@ _SCALARS: dict[str, tuple[float, float, float, bool]] = {
     "axial_mount_preload": (3.6e4, 0.0, math.inf, False),
     "axial_mount_span": (1.0e4, 0.0, math.inf, False),
     "regularisation_velocity": (0.01, 0.0, 1.0, False),
+    **{f"sensor_gain_{axis}": (1.0, 0.0, 10.0, False) for axis in "xyz"},
+    **{f"sensor_offset_{axis}": (0.0, -0.01, 0.01, True) for axis in "xyz"},
 }
 _BALL_BOUNDS: dict[str, tuple[float, float, bool]] = {
     "radial_stiffness": (0.0, math.inf, False),

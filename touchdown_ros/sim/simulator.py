@@ -41,9 +41,17 @@ def _observe(p: Truth, t: Array, states: Array):
     return rates[:, 3:6], c
 
 
-def sensor(position: np.ndarray, noise_rms: float, quantisation: float, rng: np.random.Generator) -> np.ndarray:
-    """Displacement sensor: truth + Gaussian noise (m rms, per axis), then rounded to the ADC step (m)."""
-    measured = position + noise_rms * rng.standard_normal(position.shape)
+def sensor(
+    position: np.ndarray,
+    noise_rms: float,
+    quantisation: float,
+    rng: np.random.Generator,
+    gain: np.ndarray | float = 1.0,
+    offset: np.ndarray | float = 0.0,
+) -> np.ndarray:
+    """Displacement sensor: gain * truth + offset (per axis; 1, m) + Gaussian noise (m rms, per axis),
+    then rounded to the ADC step (m)."""
+    measured = gain * position + offset + noise_rms * rng.standard_normal(position.shape)
     if quantisation > 0.0:
         measured = np.round(measured / quantisation) * quantisation
     return measured
@@ -81,7 +89,8 @@ def simulate_drop(
         raise FloatingPointError(f"experiment {condition.number}: the simulation diverged; check the simulator constants")
 
     position = states[:, :3]
-    measured = sensor(position, config.noise_rms, config.quantisation, rng)
+    gain, offset = (np.array([params.scalars[f"sensor_{error}_{a}"] for a in "xyz"]) for error in ("gain", "offset"))
+    measured = sensor(position, config.noise_rms, config.quantisation, rng, gain, offset)
     period_ns = int(round(period * 1e9))
     offset_s = (condition.number - 1) * params.scalars["experiment_interval"]
     start_ns = params.start_time_ns + int(round(offset_s * 1e9))
