@@ -19,7 +19,6 @@ from touchdown_ros.core.streaming import (
     TOUCHDOWN,
     WAITING,
     StreamingEstimator,
-    StreamSettings,
     chunk_buffer,
     estimate_stream,
     flat_belief,
@@ -99,7 +98,7 @@ def reference(record):
 
 
 def streaming(chunk_filter, **overrides):
-    settings = StreamSettings.from_config(CONFIG, chunk_sizes=CHUNKS, **overrides)
+    settings = CONFIG.stream_settings(chunk_sizes=CHUNKS, **overrides)
     return StreamingEstimator(CONFIG.model(), CONFIG.noise, settings, chunk_filter)
 
 

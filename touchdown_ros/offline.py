@@ -12,9 +12,7 @@ from touchdown_ros.core.estimate import (
     Estimate,
     Estimator,
     SignalSet,
-    detect_drop,
     force_std,
-    levitated_mean_z,
     make_estimator,
 )
 from touchdown_ros.core.input_policy import InputPolicy, RecordInput, split_record, window_is_clean
@@ -163,22 +161,19 @@ def check_training_bag(config: Config, path: str | Path) -> None:
 def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, int]:
     """(segment, row) of the drop onset in a record under the input policy; the levitated reference
     comes from the first segment's window, which must be clean (`window_is_clean`)."""
-    first = record.segments[0]
-    window = max(1, int(round(config.drop.levitated_window / config.sample_period)))
-    if not window_is_clean(first.etas[:window], config.drop.threshold) or len(first.etas) < window:
+    first, drop = record.segments[0], config.drop_detector()
+    window = drop.window_samples
+    if not window_is_clean(first.etas[:window], drop.threshold) or len(first.etas) < window:
         usable = np.isfinite(first.etas[:window]).all(axis=1)
         spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
         raise NoDropError(
-            f"{path}: the levitated window (first {config.drop.levitated_window * 1e3:g} ms) is not clean: "
+            f"{path}: the levitated window (first {drop.levitated_window * 1e3:g} ms) is not clean: "
             f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
             f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
         )
-    reference = levitated_mean_z(first.etas[:, 2], config.sample_period, config.drop.levitated_window)
+    reference = drop.reference(first.etas[:, 2])
     for k, segment in enumerate(record.segments):
-        onset = detect_drop(
-            segment.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window,
-            config.rig.gravity, reference=reference,
-        )
+        onset = drop.onset(segment.etas[:, 2], reference)
         if onset is not None:
             return k, onset
     raise NoDropError(

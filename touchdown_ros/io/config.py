@@ -19,6 +19,9 @@ import yaml
 
 from touchdown_ros.core import effects as effects_library
 from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.estimate import DropDetector
+from touchdown_ros.core.input_policy import InputPolicy
+from touchdown_ros.core.streaming.settings import StreamSettings
 from touchdown_ros.core.types import CONTACT_LAWS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
@@ -95,18 +98,18 @@ class NodeSettings:
     # inline: the executor's callbacks and timer run the EKF too (no worker thread)
     receive: str = "drain"
     realtime_priority: int = 0  # SCHED_FIFO priority (1-99) of the node's threads; 0: normal scheduling
-    chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
+    chunk_sizes: tuple[int, ...] = StreamSettings.chunk_sizes  # compiled EKF chunk lengths
     diagnostics_period: float = 1.0  # s
-    alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
-    sensor_range: float = 1.0e-3  # m, |value| at or beyond it is saturated
-    millimetre_limit: float = 0.01  # m, |value| beyond it is taken for a value in mm
-    grid_tolerance: float = 0.25  # sample periods a stamp may sit off the grid
-    max_gap: float = 0.05  # s, a longer stamp jump (either way) is a clock jump (filter restarted)
-    bridge_gap: float = 0.002  # s, holes up to this are bridged by predict-only rows; longer: filter restarted
-    rail_samples: int = 10  # identical values in a row beyond half the sensor range: a sensor pinned at a rail
-    resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
-    relevitation_band: float = 20.0e-6  # m around the levitated mean that counts as levitated
-    relevitation_window: float = 0.005  # s in the band that ends a touchdown
+    alarm_force: float = StreamSettings.alarm_force  # N, |contact force| that raises an ERROR diagnostic
+    sensor_range: float = InputPolicy.sensor_range  # m, |value| at or beyond it is saturated
+    millimetre_limit: float = InputPolicy.millimetre_limit  # m, |value| beyond it is taken for a value in mm
+    grid_tolerance: float = InputPolicy.grid_tolerance  # sample periods a stamp may sit off the grid
+    max_gap: float = InputPolicy.max_gap  # s, a longer stamp jump (either way) is a clock jump (filter restarted)
+    bridge_gap: float = InputPolicy.bridge_gap  # s, holes up to this are bridged by predict-only rows; longer: restart
+    rail_samples: int = InputPolicy.rail_samples  # identical values in a row beyond half the range: pinned at a rail
+    resync_after: int = StreamSettings.resync_after  # consecutive out-of-order / off-grid samples that re-anchor
+    relevitation_band: float = StreamSettings.relevitation_band  # m around the levitated mean that counts as levitated
+    relevitation_window: float = StreamSettings.relevitation_window  # s in the band that ends a touchdown
     conditions: tuple[str, ...] = ()  # test conditions on during this run (switch effects with a `when`)
 
 
@@ -148,6 +151,24 @@ class Config:
     def training_noise(self) -> FilterNoise:
         """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
         return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
+
+    def drop_detector(self) -> DropDetector:
+        """The drop onset rule of `drop_detection.*` on this rig's sample grid."""
+        return DropDetector(self.sample_period, self.drop.threshold, self.drop.levitated_window, self.rig.gravity)
+
+    def stream_settings(self, **overrides: Any) -> StreamSettings:
+        """The streaming estimator's settings (`drop_detection.*`, `sensor.*`, `node.*`); `overrides` by field name."""
+        node = self.node
+        settings = StreamSettings(
+            policy=InputPolicy.from_config(self),
+            drop=self.drop_detector(),
+            resync_after=node.resync_after,
+            relevitation_band=node.relevitation_band,
+            relevitation_window=node.relevitation_window,
+            alarm_force=node.alarm_force,
+            chunk_sizes=tuple(node.chunk_sizes),
+        )
+        return replace(settings, **overrides)
 
     def fingerprint(self) -> str:
         """SHA-256 of the rig a coefficient file is valid for (`model_identity`)."""

@@ -56,12 +56,7 @@ from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.core.effects import gates_for
 from touchdown_ros.core.estimate import force_std
-from touchdown_ros.core.streaming import (
-    StreamEvent,
-    StreamingEstimator,
-    StreamOutput,
-    StreamSettings,
-)
+from touchdown_ros.core.streaming import StreamEvent, StreamingEstimator, StreamOutput
 from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
 from touchdown_ros.ros import messages
@@ -238,7 +233,7 @@ class EstimatorNode(Node):
         self.config = self._configure(base_config, coefficients)
         node = self.config.node
         self.model_info, model = self._load_model(node.coefficients)
-        settings = StreamSettings.from_config(self.config)
+        settings = self.config.stream_settings()
         # the node has no bag metadata: node.conditions says which conditional effects act now
         gates = gates_for(model.effects, {name: "true" for name in node.conditions})
         model = model._replace(effects=model.effects.with_gates(gates))
