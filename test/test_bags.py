@@ -68,7 +68,7 @@ def deserialised(raws, msgtype):
     stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in messages], dtype=np.int64)
     values = np.array([bags._float64_block(m, msgtype)[:3] for m in messages])
     covariance = None
-    if msgtype in bags.COVARIANCE_TYPES:
+    if msgtype in cdr.COVARIANCE_TYPES:
         covariance = np.array([np.asarray(bags._float64_block(m, msgtype)[6:]).reshape(6, 6)[:3, :3] for m in messages])
     return stamps, values, covariance
 
@@ -99,7 +99,7 @@ def test_round_trip_is_bit_exact_for_every_type(tmp_path, name):
     assert read.frame_id == "amb" and read.path == target
     for s in series[1:]:
         back = read_vector_topic(target, s.topic)
-        assert back.msgtype == bags._full_type(s.msgtype)
+        assert back.msgtype == cdr.full_type(s.msgtype)
         assert back.stamps_ns.tobytes() == AWKWARD_STAMPS.tobytes()
         assert back.values.tobytes() == np.asarray(s.values, dtype=np.float64).tobytes(), s.topic
         assert back.frame_id == s.frame_id
@@ -108,7 +108,7 @@ def test_round_trip_is_bit_exact_for_every_type(tmp_path, name):
         else:
             assert back.covariance.tobytes() == s.covariance.tobytes(), s.topic
     assert read_vector_topic(target, "/absent") is None
-    assert list_topics(target) == {s.topic: bags._full_type(s.msgtype) for s in sorted(series, key=lambda s: s.topic)}
+    assert list_topics(target) == {s.topic: cdr.full_type(s.msgtype) for s in sorted(series, key=lambda s: s.topic)}
 
 
 def test_messages_of_all_topics_are_interleaved_in_stamp_order(tmp_path):
@@ -141,7 +141,7 @@ def test_written_bag_is_read_by_the_mcap_reader(tmp_path):
         for s in series:
             channel = channels[s.topic]
             assert channel.message_encoding == "cdr"
-            assert schemas[channel.schema_id].name == bags._full_type(s.msgtype)
+            assert schemas[channel.schema_id].name == cdr.full_type(s.msgtype)
             assert schemas[channel.schema_id].encoding == "ros2msg"
             assert summary.statistics.channel_message_counts[channel.id] == 20
         messages = list(reader.iter_messages())
@@ -185,7 +185,7 @@ def test_bare_mcap_files_are_read(tmp_path):
 @pytest.mark.parametrize("msgtype", list(MESSAGE_TYPES))
 @pytest.mark.parametrize("frame_id", ["", "a", "abc", "abcd", "sensor_x", "cinq_é", "a" * 13])
 def test_numpy_encoding_equals_rosbags_serialisation(msgtype, frame_id):
-    series = [s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if bags._full_type(s.msgtype) == MESSAGE_TYPES[msgtype]]
+    series = [s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if cdr.full_type(s.msgtype) == MESSAGE_TYPES[msgtype]]
     (s,) = series
     s = TopicSeries(s.topic, s.msgtype, s.stamps_ns, s.values, s.covariance, frame_id)
     rows = bags.encode_series(s)
@@ -201,7 +201,7 @@ def test_fast_reader_equals_per_message_deserialisation(tmp_path, monkeypatch, m
     rng = np.random.default_rng(3)
     stamps = np.sort(rng.integers(0, 2**31 * 10**9, 300))
     values = rng.standard_normal((300, 3)) * 10.0 ** rng.integers(-300, 300, (300, 3))
-    covariance = rng.standard_normal((300, 3, 3)) if MESSAGE_TYPES[msgtype] in bags.COVARIANCE_TYPES else None
+    covariance = rng.standard_normal((300, 3, 3)) if MESSAGE_TYPES[msgtype] in cdr.COVARIANCE_TYPES else None
     path = write_bag(tmp_path / "bag", [TopicSeries("/x", msgtype, stamps, values, covariance, frame_id="base")])
     raws = raw_messages(path, "/x")
     want_stamps, want_values, want_covariance = deserialised(raws, MESSAGE_TYPES[msgtype])

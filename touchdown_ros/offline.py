@@ -20,6 +20,7 @@ from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import BagError, CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
 from touchdown_ros.io.config import Config
+from touchdown_ros.io.estimate_topics import estimate_series
 
 
 #: Which estimate the offline tools write: the RTS smoother's (uses the whole record, the default)
@@ -299,25 +300,7 @@ def within_two_std(force_xyz: np.ndarray, force_cov: np.ndarray, true_force: np.
 def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) -> list[TopicSeries]:
     """The `/touchdown/...` topics of an estimate (smoothed or filtered), as the live node publishes
     them (the node's are the filtered ones)."""
-    topics, frame = config.topics, config.topics.frame_id
-    chosen, stamps = answer_of(estimate, answer), estimate.stamps_ns
-    state, cov = np.asarray(chosen.state), np.asarray(chosen.state_cov)
-    return [
-        TopicSeries(topics.displacement_estimate, "PointStamped", stamps, state[:, :3], frame_id=frame),
-        TopicSeries(topics.velocity, "TwistWithCovarianceStamped", stamps, state[:, 4:], cov[:, 4:, 4:], frame_id=frame),
-        TopicSeries(
-            topics.acceleration,
-            "AccelWithCovarianceStamped",
-            stamps,
-            np.asarray(chosen.acceleration),
-            np.asarray(chosen.acceleration_cov),
-            frame_id=frame,
-        ),
-        TopicSeries(topics.contact_force, "WrenchStamped", stamps, np.asarray(chosen.force_xyz), frame_id=frame),
-        TopicSeries(
-            topics.contact_force_std, "Vector3Stamped", stamps, force_std(np.asarray(chosen.force_cov)), frame_id=frame
-        ),
-    ]
+    return estimate_series(answer_of(estimate, answer), estimate.stamps_ns, config.topics)
 
 
 #: Offline output topic marking the rows without a usable measurement (input policy): Vector3Stamped, one

@@ -31,15 +31,8 @@ from touchdown_ros.io import cdr
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
 
-#: Short message names this module writes and reads (all hold a stamped 3-vector).
-MESSAGE_TYPES = {
-    "PointStamped": "geometry_msgs/msg/PointStamped",
-    "Vector3Stamped": "geometry_msgs/msg/Vector3Stamped",
-    "WrenchStamped": "geometry_msgs/msg/WrenchStamped",
-    "TwistWithCovarianceStamped": "geometry_msgs/msg/TwistWithCovarianceStamped",
-    "AccelWithCovarianceStamped": "geometry_msgs/msg/AccelWithCovarianceStamped",
-}
-COVARIANCE_TYPES = frozenset({MESSAGE_TYPES["TwistWithCovarianceStamped"], MESSAGE_TYPES["AccelWithCovarianceStamped"]})
+#: Short message names this module writes and reads (all hold a stamped 3-vector), and their full names.
+MESSAGE_TYPES = {full.rsplit("/", 1)[1]: full for full in cdr.FLOAT64_COUNT}
 DISPLACEMENT_TYPE = MESSAGE_TYPES["PointStamped"]
 DISPLACEMENT_TOPIC = "/amb/displacement"
 TRUTH_VELOCITY_TOPIC = "/truth/velocity"
@@ -101,10 +94,6 @@ class TopicSeries:
 # ------------------------------------------------------------------------------------------------ reading
 
 
-def _full_type(msgtype: str) -> str:
-    return MESSAGE_TYPES.get(msgtype, msgtype)
-
-
 def _existing(path: str | Path) -> Path:
     path = Path(path)
     if not path.exists():
@@ -158,8 +147,7 @@ def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any) -> Ve
         messages = [store.deserialize_cdr(raw, msgtype) for raw in raws]
         stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
         block = np.array([_float64_block(m, msgtype) for m in messages], dtype=np.float64).reshape(-1, k)
-    covariance = block[:, 6:].reshape(-1, 6, 6)[:, :3, :3].copy() if msgtype in COVARIANCE_TYPES else None
-    return VectorSeries(topic, msgtype, stamps, np.ascontiguousarray(block[:, :3]), covariance, frame_id)
+    return VectorSeries(topic, msgtype, stamps, *cdr.vector_and_covariance(msgtype, block), frame_id)
 
 
 def _read_topics(
@@ -276,7 +264,7 @@ def validate_displacement(series: DisplacementSeries, limit: float = MILLIMETRE_
 
 def read_vector_topic(path: str | Path, topic: str, msgtype: str | None = None) -> VectorSeries | None:
     """A stamped 3-vector topic of a bag (any of MESSAGE_TYPES, or only msgtype); None when absent."""
-    expected = {topic: _full_type(msgtype)} if msgtype else None
+    expected = {topic: cdr.full_type(msgtype)} if msgtype else None
     return _read_topics(path, [topic], expected)[1].get(topic)
 
 
@@ -344,7 +332,7 @@ def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.
     header = _header(stamp_ns, frame_id)
     x, y, z = (float(v) for v in value)
     Vector3, zero = _T["geometry_msgs/msg/Vector3"], _T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    full = _full_type(msgtype)
+    full = cdr.full_type(msgtype)
     if full == MESSAGE_TYPES["PointStamped"]:
         return _T[full](header=header, point=_T["geometry_msgs/msg/Point"](x=x, y=y, z=z))
     if full == MESSAGE_TYPES["Vector3Stamped"]:
@@ -362,31 +350,17 @@ def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.
     raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
 
 
-def _float64_rows(series: TopicSeries, msgtype: str) -> np.ndarray:
-    """(N, k) float64 fields after the header, as `make_message` fills them."""
-    values = np.asarray(series.values, dtype=np.float64)
-    n = len(values)
-    if msgtype in (MESSAGE_TYPES["PointStamped"], MESSAGE_TYPES["Vector3Stamped"]):
-        return values
-    if msgtype == MESSAGE_TYPES["WrenchStamped"]:
-        return np.concatenate([values, np.zeros((n, 3))], axis=1)
-    covariance = np.zeros((n, 6, 6))
-    if series.covariance is not None:
-        covariance[:, :3, :3] = np.asarray(series.covariance, dtype=np.float64)
-    return np.concatenate([values, np.zeros((n, 3)), covariance.reshape(n, 36)], axis=1)
-
-
 def encode_series(series: TopicSeries) -> np.ndarray:
     """(N, size) uint8: the CDR messages of a topic, row i = message i (checks the series first)."""
     check_series(series)
-    msgtype = _full_type(series.msgtype)
-    return cdr.encode(np.asarray(series.stamps_ns, dtype=np.int64), _float64_rows(series, msgtype), series.frame_id)
+    msgtype = cdr.full_type(series.msgtype)
+    return cdr.encode(series.stamps_ns, cdr.float64_block(msgtype, series.values, series.covariance), series.frame_id)
 
 
 def check_series(series: TopicSeries) -> None:
     """Raise ValueError unless the series can be written as it says."""
     where = f"topic {series.topic}"
-    msgtype = _full_type(series.msgtype)
+    msgtype = cdr.full_type(series.msgtype)
     if msgtype not in cdr.FLOAT64_COUNT:
         raise ValueError(f"{where}: cannot write message type {series.msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
     stamps = np.asarray(series.stamps_ns)
@@ -396,7 +370,7 @@ def check_series(series: TopicSeries) -> None:
     if np.shape(series.values) != (n, 3):
         raise ValueError(f"{where}: {n} stamps but values of shape {np.shape(series.values)}")
     if series.covariance is not None:
-        if msgtype not in COVARIANCE_TYPES:
+        if msgtype not in cdr.COVARIANCE_TYPES:
             raise ValueError(f"{where}: a covariance is given but {msgtype} has none")
         if np.shape(series.covariance) != (n, 3, 3):
             raise ValueError(f"{where}: covariance must be ({n}, 3, 3), got {np.shape(series.covariance)}")
@@ -418,7 +392,7 @@ def _write_messages(
     with Writer(target, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for key, value in custom_data.items():
             writer.set_custom_data(key, value)
-        connections = [writer.add_connection(s.topic, _full_type(s.msgtype), typestore=TYPESTORE) for s in series]
+        connections = [writer.add_connection(s.topic, cdr.full_type(s.msgtype), typestore=TYPESTORE) for s in series]
         for stamp, t, row in zip(all_stamps[order].tolist(), topic_of[order].tolist(), row_of[order].tolist()):
             size = sizes[t]
             writer.write(connections[t], stamp, blobs[t][row * size : (row + 1) * size])
