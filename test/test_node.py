@@ -173,15 +173,13 @@ def loopback(monkeypatch):
 def drop_bag(path: Path) -> tuple[Path, str]:
     """A drop-test bag: the simulator's experiment 11 when touchdown_ros.sim is there, else the model's own drop."""
     try:
-        from touchdown_ros.offline import write_drop_bag
-        from touchdown_ros.sim.campaign import CAMPAIGN
-        from touchdown_ros.sim.simulator import simulate_drop
+        from conftest import write_simulated_bag
     except ImportError:
         stamps, measured = model_drop_record()
         write_bag(path, [TopicSeries(CONFIG.topics.displacement, "PointStamped", stamps, measured,
                                      frame_id=CONFIG.topics.frame_id)])
         return path, "core model"
-    write_drop_bag(simulate_drop(CONFIG, CAMPAIGN[10], seed=11), CONFIG, path)
+    write_simulated_bag(path, 11, seed=11, config=CONFIG)
     return path, "simulator experiment 11"
 
 

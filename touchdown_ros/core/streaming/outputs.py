@@ -57,8 +57,8 @@ class TouchdownSummary(NamedTuple):
     end_stamp_ns: int
     samples: int  # grid rows filtered
     missing_samples: int  # predict-only rows among them (gaps and refused values)
-    axial_impacts: int  # impacts of the axial contact flag
-    radial_impacts: int  # impacts of the radial contact flag
+    axial_impacts: int  # impacts of the axial contact flag (`core.impacts`)
+    radial_impacts: int  # impacts of the radial contact flag (`core.impacts`)
     peak_axial_force: float  # max F_z, N
     peak_radial_force: float  # max |(F_x, F_y)|, N
     mean_nis: float  # mean normalised innovation squared (3 expected)

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 
+from touchdown_ros.core.impacts import ImpactCounter
 from touchdown_ros.core.streaming.outputs import StreamOutput, TouchdownSummary
 
 
@@ -14,10 +15,10 @@ class TouchdownTally:
     def __init__(self, onset_stamp_ns: int):
         self.onset_stamp_ns = onset_stamp_ns
         self.end_stamp_ns = onset_stamp_ns
-        self.samples = self.missing = self.axial_impacts = self.radial_impacts = 0
+        self.samples = self.missing = 0
+        self.axial_impacts, self.radial_impacts = ImpactCounter(), ImpactCounter()
         self.peak_axial = self.peak_radial = -math.inf
         self.nis_sum, self.nis_count = 0.0, 0
-        self.last_axial = self.last_radial = False
         self.restarts = 0
 
     def add(self, out: StreamOutput) -> None:
@@ -29,9 +30,8 @@ class TouchdownTally:
         self.samples += n
         self.missing += n - n_used
         self.end_stamp_ns = int(out.stamps_ns[-1])
-        self.axial_impacts += _rising_edges(out.axial_contact, self.last_axial)
-        self.radial_impacts += _rising_edges(out.radial_contact, self.last_radial)
-        self.last_axial, self.last_radial = bool(out.axial_contact[-1]), bool(out.radial_contact[-1])
+        self.axial_impacts.add(out.axial_contact)
+        self.radial_impacts.add(out.radial_contact)
         if n_used:  # predict-only rows (gaps, refused values) are left out of the peaks, as offline
             self.peak_axial = max(self.peak_axial, float(out.F_z[used].max()))
             fx, fy = out.force_xyz[used, 0], out.force_xyz[used, 1]
@@ -46,17 +46,11 @@ class TouchdownTally:
             end_stamp_ns=self.end_stamp_ns,
             samples=self.samples,
             missing_samples=self.missing,
-            axial_impacts=self.axial_impacts,
-            radial_impacts=self.radial_impacts,
+            axial_impacts=self.axial_impacts.count,
+            radial_impacts=self.radial_impacts.count,
             peak_axial_force=self.peak_axial if self.nis_count else math.nan,
             peak_radial_force=self.peak_radial if self.nis_count else math.nan,
             mean_nis=self.nis_sum / self.nis_count if self.nis_count else math.nan,
             end_reason=end_reason,
             filter_restarts=self.restarts,
         )
-
-
-def _rising_edges(flags: np.ndarray, previous: bool) -> int:
-    """False -> True transitions in flags, the element before flags[0] being `previous`."""
-    return int(np.count_nonzero(flags[1:] & ~flags[:-1])) + int(bool(flags[0]) and not previous)
-
