@@ -124,13 +124,6 @@ class DropDetector(NamedTuple):
         return max(0, int(below[0]) - self.fall_samples)
 
 
-def detect_drop(
-    z: np.ndarray, sample_period: float, threshold: float, window: float, gravity: float, reference: float | None = None
-) -> int | None:
-    """`DropDetector(sample_period, threshold, window, gravity).onset(z, reference)`."""
-    return DropDetector(sample_period, threshold, window, gravity).onset(z, reference)
-
-
 def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) -> Belief:
     """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0.
 
