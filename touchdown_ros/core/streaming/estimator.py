@@ -60,7 +60,7 @@ class StreamingEstimator:
 
     @property
     def levitated_reference(self) -> np.ndarray | None:
-        """Levitated mean (x, y, z), m; z as `detect_drop` computes it. None while waiting."""
+        """Levitated mean (x, y, z), m; z as `DropDetector.reference` computes it. None while waiting."""
         return None if self._reference is None else self._reference.copy()
 
     @property
@@ -87,10 +87,6 @@ class StreamingEstimator:
         self._ingest(stamps_ns, xyz)
         self._run_filter(final=False)
         return self._collect()
-
-    def push_one(self, stamp_ns: int, x: float, y: float, z: float) -> StreamUpdate:
-        """One sample (stamp ns, displacement m)."""
-        return self.push(np.array([stamp_ns], np.int64), np.array([[x, y, z]]))
 
     def finish(self) -> StreamUpdate:
         """End of stream: filter what is still held and close a touchdown in progress."""
@@ -126,7 +122,7 @@ class StreamingEstimator:
                 stamps, etas = self._advance_levitated(stamps, etas)
 
     def _advance_levitated(self, stamps: np.ndarray, etas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Levitated reference over the first window rows, then the first crossing (`detect_drop`)."""
+        """Levitated reference over the first window rows, then the first crossing (`DropDetector.onset`)."""
         settings = self.settings
         buffer_stamps = np.concatenate([self._buffer_stamps, stamps])
         buffer_etas = np.concatenate([self._buffer_etas, etas])
