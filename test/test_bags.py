@@ -9,7 +9,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 import touchdown_ros.io.bags as bags
-from touchdown_ros.io import cdr
+from touchdown_ros.io import atomic_install, cdr
 from touchdown_ros.io.bags import (
     MESSAGE_TYPES,
     TYPESTORE,
@@ -51,7 +51,7 @@ def record(path, header_stamps, xyz, log_times=None, frame_ids=None, msgtype="Po
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/amb/displacement", full, typestore=TYPESTORE)
         for log_time, stamp, row, frame in zip(log_times, header_stamps, xyz, frame_ids):
-            message = bags.make_message(msgtype, int(stamp), row, None, frame)
+            message = make_message(msgtype, int(stamp), row, None, frame)
             writer.write(connection, int(log_time), TYPESTORE.serialize_cdr(message, full, little_endian=little_endian))
     return path
 
@@ -60,6 +60,42 @@ def raw_messages(path, topic):
     with AnyReader([path], default_typestore=TYPESTORE) as reader:
         connections = [c for c in reader.connections if c.topic == topic]
         return [bytes(raw) for _, _, raw in reader.messages(connections=connections)]
+
+
+def _header(stamp_ns: int, frame_id: str):
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return TYPESTORE.types["std_msgs/msg/Header"](stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def _covariance6(block: np.ndarray | None) -> np.ndarray:
+    full = np.zeros((6, 6))
+    if block is not None:
+        full[:3, :3] = block
+    return full.ravel()
+
+
+def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.ndarray | None, frame_id: str):
+    """One rosbags message of a MESSAGE_TYPES kind holding value (3,) (and its 3x3 covariance): the
+    per-message reference of the numpy encoding."""
+    header = _header(stamp_ns, frame_id)
+    x, y, z = (float(v) for v in value)
+    Vector3, zero = TYPESTORE.types["geometry_msgs/msg/Vector3"], TYPESTORE.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    full = cdr.full_type(msgtype)
+    if full == MESSAGE_TYPES["PointStamped"]:
+        return TYPESTORE.types[full](header=header, point=TYPESTORE.types["geometry_msgs/msg/Point"](x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["Vector3Stamped"]:
+        return TYPESTORE.types[full](header=header, vector=Vector3(x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["WrenchStamped"]:
+        return TYPESTORE.types[full](header=header, wrench=TYPESTORE.types["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero))
+    if full == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
+        twist = TYPESTORE.types["geometry_msgs/msg/Twist"](linear=Vector3(x=x, y=y, z=z), angular=zero)
+        body = TYPESTORE.types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_covariance6(covariance))
+        return TYPESTORE.types[full](header=header, twist=body)
+    if full == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
+        accel = TYPESTORE.types["geometry_msgs/msg/Accel"](linear=Vector3(x=x, y=y, z=z), angular=zero)
+        body = TYPESTORE.types["geometry_msgs/msg/AccelWithCovariance"](accel=accel, covariance=_covariance6(covariance))
+        return TYPESTORE.types[full](header=header, accel=body)
+    raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
 
 
 def deserialised(raws, msgtype):
@@ -171,7 +207,7 @@ def test_bare_mcap_files_are_read(tmp_path):
         schema = writer.register_schema(bags.DISPLACEMENT_TYPE, "ros2msg", msgdef.encode())
         channel = writer.register_channel("/amb/displacement", "cdr", schema)
         for stamp, row in zip(stamps, xyz):
-            data = TYPESTORE.serialize_cdr(bags.make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE)
+            data = TYPESTORE.serialize_cdr(make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE)
             writer.add_message(channel, int(stamp), bytes(data), int(stamp))
         writer.finish()
     read = read_displacement(foreign)
@@ -191,7 +227,7 @@ def test_numpy_encoding_equals_rosbags_serialisation(msgtype, frame_id):
     rows = bags.encode_series(s)
     for i, stamp in enumerate(s.stamps_ns):
         covariance = None if s.covariance is None else s.covariance[i]
-        message = bags.make_message(msgtype, int(stamp), s.values[i], covariance, frame_id)
+        message = make_message(msgtype, int(stamp), s.values[i], covariance, frame_id)
         assert rows[i].tobytes() == bytes(TYPESTORE.serialize_cdr(message, MESSAGE_TYPES[msgtype])), (msgtype, i)
 
 
@@ -437,7 +473,7 @@ def test_write_failing_midway_leaves_nothing(tmp_path, monkeypatch):
 @pytest.mark.parametrize("exchange", [True, False], ids=["renameat2", "two renames"])
 def test_overwrite_is_refused_unless_asked_and_then_atomic(tmp_path, monkeypatch, exchange):
     if not exchange:
-        monkeypatch.setattr(bags, "_renameat2", lambda *args: False)
+        monkeypatch.setattr(atomic_install, "_renameat2", lambda *args: False)
     stamps, xyz = displacement(30)
     for target in (tmp_path / "bag", tmp_path / "bare.mcap"):
         first = [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)]

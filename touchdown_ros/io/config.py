@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,12 +22,9 @@ from touchdown_ros.core.estimate import DropDetector
 from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.streaming.settings import StreamSettings
 from touchdown_ros.core.types import CONTACT_LAWS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
+from touchdown_ros.io.parameters import ConfigError, ParameterReader, flatten_parameters
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
-
-
-class ConfigError(ValueError):
-    """The rig YAML is missing, malformed or holds an invalid value."""
 
 
 @dataclass(frozen=True)
@@ -207,7 +203,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML: {error}") from None
     parameters = _ros_parameters(document, path)
-    flat = dict(_flatten(parameters))
+    flat = dict(flatten_parameters(parameters))
     flat.update(overrides or {})
     return config_from_parameters(flat, source=str(path))
 
@@ -221,98 +217,6 @@ def _ros_parameters(document: Any, path: Path) -> dict[str, Any]:
     raise ConfigError(f"{path}: no '<node>: ros__parameters:' section found")
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = ""):
-    for key, value in tree.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            yield from _flatten(value, name + ".")
-        else:
-            yield name, value
-
-
-class _Reader:
-    """Takes typed values out of the flat parameter dict and remembers what it used."""
-
-    def __init__(self, flat: Mapping[str, Any], source: str):
-        self.flat, self.source, self.used = flat, source, set()
-
-    def _get(self, key: str, default: Any = ...) -> Any:
-        if key not in self.flat:
-            if default is ...:
-                raise ConfigError(f"{self.source}: missing parameter '{key}'")
-            return default
-        self.used.add(key)
-        return self.flat[key]
-
-    def number(self, key: str, default: Any = ..., positive: bool = False, non_negative: bool = False) -> float:
-        value = self._get(key, default)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            hint = ""
-            if isinstance(value, str) and _looks_numeric(value):
-                hint = " (YAML reads an exponent without sign as text: write 1.0e+8, not 1.0e8)"
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}{hint}")
-        if positive and value <= 0:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be > 0, got {value!r}")
-        if non_negative and value < 0:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be >= 0, got {value!r}")
-        return float(value)
-
-    def numbers(self, key: str, length: int | None = None, non_negative: bool = False) -> np.ndarray:
-        value = self._get(key)
-        if not isinstance(value, list) or not value or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
-        ):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of finite numbers")
-        if length is not None and len(value) != length:
-            raise ConfigError(f"{self.source}: parameter '{key}' must have {length} values, got {len(value)}")
-        array = np.asarray(value, dtype=float)
-        if non_negative and (array < 0).any():
-            raise ConfigError(f"{self.source}: parameter '{key}' must not be negative")
-        return array
-
-    def text(self, key: str, default: str, allow_empty: bool = False) -> str:
-        value = self._get(key, default)
-        if not isinstance(value, str) or not (value or allow_empty):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
-        return value
-
-    def flag(self, key: str, default: bool) -> bool:
-        value = self._get(key, default)
-        if not isinstance(value, bool):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be true or false, got {value!r}")
-        return value
-
-    def choice(self, key: str, default: str, allowed: tuple[str, ...]) -> str:
-        value = self.text(key, default)
-        if value not in allowed:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be one of {', '.join(allowed)}, got {value!r}")
-        return value
-
-    def integer(self, key: str, default: Any = ..., minimum: int = 1, maximum: int | None = None) -> int:
-        value = self._get(key, default)
-        if (isinstance(value, bool) or not isinstance(value, int) or value < minimum
-                or maximum is not None and value > maximum):
-            bounds = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
-            raise ConfigError(f"{self.source}: parameter '{key}' must be an integer {bounds}, got {value!r}")
-        return value
-
-    def integers(self, key: str, default: tuple[int, ...], minimum: int = 1) -> tuple[int, ...]:
-        value = self._get(key, list(default))
-        if not isinstance(value, (list, tuple)) or not value or not all(
-            isinstance(v, int) and not isinstance(v, bool) and v >= minimum for v in value
-        ):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of integers >= {minimum}")
-        return tuple(value)
-
-
-def _looks_numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     d, v = np.meshgrid(deformation, velocity, indexing="ij")
     return np.stack([d.ravel(), v.ravel()], axis=1)
@@ -320,7 +224,7 @@ def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
 
 def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>") -> Config:
     """Build a Config from flat dotted ROS parameters (as the node receives them)."""
-    read = _Reader(flat, source)
+    read = ParameterReader(flat, source)
     rig = Rig(
         mass=read.number("rig.mass", positive=True),
         eccentricity=read.number("rig.eccentricity", non_negative=True),
@@ -390,7 +294,7 @@ def parse_contact_law(text: str) -> ContactLaw:
     return ContactLaw.of(name, n)
 
 
-def _contact_law(read: _Reader) -> ContactLaw:
+def _contact_law(read: ParameterReader) -> ContactLaw:
     """contact.law (linear | hertz) and contact.exponent (hertz only, default 1.5)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
@@ -400,7 +304,7 @@ def _contact_law(read: _Reader) -> ContactLaw:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
 
-def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
+def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettings:
     """The `training.*` keys of the two-stage identification (defaults of TrainingSettings)."""
     d = TrainingSettings()
     laws = read._get("training.contact_laws", ["linear", "hertz:1.5", "hertz:1.111"])
@@ -422,7 +326,7 @@ def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
     )
 
 
-def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
+def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
     """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values."""
     active = read._get("effects.active", [])
     if not isinstance(active, list) or not all(isinstance(n, str) and n for n in active) or len(set(active)) < len(active):
@@ -453,7 +357,7 @@ def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
     return Effects(tuple(chosen), tuple(values[e.name] for e in chosen))
 
 
-def _effect_when(read: _Reader, flat: Mapping[str, Any]) -> dict[str, str]:
+def _effect_when(read: ParameterReader, flat: Mapping[str, Any]) -> dict[str, str]:
     """effects.when.<effect>: <condition>: the effect acts only in bags whose condition.<condition> is true."""
     active = flat.get("effects.active", [])
     when = {k.removeprefix("effects.when."): read.text(k, "") for k in flat if k.startswith("effects.when.")}
@@ -463,7 +367,7 @@ def _effect_when(read: _Reader, flat: Mapping[str, Any]) -> dict[str, str]:
     return when
 
 
-def _node_settings(read: _Reader) -> NodeSettings:
+def _node_settings(read: ParameterReader) -> NodeSettings:
     """The optional `node.*` section (defaults of NodeSettings for what is absent)."""
     d = NodeSettings()
     return NodeSettings(
@@ -496,7 +400,7 @@ def _node_settings(read: _Reader) -> NodeSettings:
     )
 
 
-def _names(read: _Reader, key: str) -> tuple[str, ...]:
+def _names(read: ParameterReader, key: str) -> tuple[str, ...]:
     value = read._get(key, [])
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
         raise ConfigError(f"{read.source}: parameter '{key}' must be a list of names")
