@@ -118,7 +118,6 @@ def publisher_main(args: argparse.Namespace) -> int:
     batched = args.kind == "batched"
     topic = "/amb/displacement_batch" if batched else "/amb/displacement"
     publisher = node.create_publisher(PointCloud2 if batched else PointStamped, topic, profile)
-    layout = messages.FixedLayout("amb_sensor", 3)
     deadline = time.monotonic() + 60
     while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -142,7 +141,7 @@ def publisher_main(args: argparse.Namespace) -> int:
                     publisher.publish(messages.batch_cloud(int(stamps[a]), "amb_sensor", stamps[a:a + BATCH],
                                                            xyz[a:a + BATCH]))
             else:
-                for blob in messages.encode_fixed(layout, stamps, xyz):
+                for blob in messages.encode_stamped("PointStamped", stamps, xyz, None, "amb_sensor"):
                     publisher.publish(blob)
             late.append(time.time_ns() - stamps)
             sent = due
@@ -191,7 +190,7 @@ def run_case(case: Case, duration: float, domain: int, params: list[str] = (), p
     from sensor_msgs.msg import PointCloud2
 
     from touchdown_ros.ros import messages
-    from touchdown_ros.ros.node import DrainedSubscription
+    from touchdown_ros.ros.runtime import DrainedSubscription
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.pop("ROS_LOCALHOST_ONLY", None)

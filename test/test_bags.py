@@ -9,7 +9,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 import touchdown_ros.io.bags as bags
-from touchdown_ros.io import cdr
+from touchdown_ros.io import atomic_install, cdr
 from touchdown_ros.io.bags import (
     MESSAGE_TYPES,
     TYPESTORE,
@@ -51,7 +51,7 @@ def record(path, header_stamps, xyz, log_times=None, frame_ids=None, msgtype="Po
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/amb/displacement", full, typestore=TYPESTORE)
         for log_time, stamp, row, frame in zip(log_times, header_stamps, xyz, frame_ids):
-            message = bags.make_message(msgtype, int(stamp), row, None, frame)
+            message = make_message(msgtype, int(stamp), row, None, frame)
             writer.write(connection, int(log_time), TYPESTORE.serialize_cdr(message, full, little_endian=little_endian))
     return path
 
@@ -62,13 +62,49 @@ def raw_messages(path, topic):
         return [bytes(raw) for _, _, raw in reader.messages(connections=connections)]
 
 
+def _header(stamp_ns: int, frame_id: str):
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return TYPESTORE.types["std_msgs/msg/Header"](stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def _covariance6(block: np.ndarray | None) -> np.ndarray:
+    full = np.zeros((6, 6))
+    if block is not None:
+        full[:3, :3] = block
+    return full.ravel()
+
+
+def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.ndarray | None, frame_id: str):
+    """One rosbags message of a MESSAGE_TYPES kind holding value (3,) (and its 3x3 covariance): the
+    per-message reference of the numpy encoding."""
+    header = _header(stamp_ns, frame_id)
+    x, y, z = (float(v) for v in value)
+    Vector3, zero = TYPESTORE.types["geometry_msgs/msg/Vector3"], TYPESTORE.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    full = cdr.full_type(msgtype)
+    if full == MESSAGE_TYPES["PointStamped"]:
+        return TYPESTORE.types[full](header=header, point=TYPESTORE.types["geometry_msgs/msg/Point"](x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["Vector3Stamped"]:
+        return TYPESTORE.types[full](header=header, vector=Vector3(x=x, y=y, z=z))
+    if full == MESSAGE_TYPES["WrenchStamped"]:
+        return TYPESTORE.types[full](header=header, wrench=TYPESTORE.types["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero))
+    if full == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
+        twist = TYPESTORE.types["geometry_msgs/msg/Twist"](linear=Vector3(x=x, y=y, z=z), angular=zero)
+        body = TYPESTORE.types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_covariance6(covariance))
+        return TYPESTORE.types[full](header=header, twist=body)
+    if full == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
+        accel = TYPESTORE.types["geometry_msgs/msg/Accel"](linear=Vector3(x=x, y=y, z=z), angular=zero)
+        body = TYPESTORE.types["geometry_msgs/msg/AccelWithCovariance"](accel=accel, covariance=_covariance6(covariance))
+        return TYPESTORE.types[full](header=header, accel=body)
+    raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
+
+
 def deserialised(raws, msgtype):
     """(stamps, values, covariance) decoded one message at a time by rosbags."""
     messages = [TYPESTORE.deserialize_cdr(raw, msgtype) for raw in raws]
     stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in messages], dtype=np.int64)
     values = np.array([bags._float64_block(m, msgtype)[:3] for m in messages])
     covariance = None
-    if msgtype in bags.COVARIANCE_TYPES:
+    if msgtype in cdr.COVARIANCE_TYPES:
         covariance = np.array([np.asarray(bags._float64_block(m, msgtype)[6:]).reshape(6, 6)[:3, :3] for m in messages])
     return stamps, values, covariance
 
@@ -99,7 +135,7 @@ def test_round_trip_is_bit_exact_for_every_type(tmp_path, name):
     assert read.frame_id == "amb" and read.path == target
     for s in series[1:]:
         back = read_vector_topic(target, s.topic)
-        assert back.msgtype == bags._full_type(s.msgtype)
+        assert back.msgtype == cdr.full_type(s.msgtype)
         assert back.stamps_ns.tobytes() == AWKWARD_STAMPS.tobytes()
         assert back.values.tobytes() == np.asarray(s.values, dtype=np.float64).tobytes(), s.topic
         assert back.frame_id == s.frame_id
@@ -108,7 +144,7 @@ def test_round_trip_is_bit_exact_for_every_type(tmp_path, name):
         else:
             assert back.covariance.tobytes() == s.covariance.tobytes(), s.topic
     assert read_vector_topic(target, "/absent") is None
-    assert list_topics(target) == {s.topic: bags._full_type(s.msgtype) for s in sorted(series, key=lambda s: s.topic)}
+    assert list_topics(target) == {s.topic: cdr.full_type(s.msgtype) for s in sorted(series, key=lambda s: s.topic)}
 
 
 def test_messages_of_all_topics_are_interleaved_in_stamp_order(tmp_path):
@@ -141,7 +177,7 @@ def test_written_bag_is_read_by_the_mcap_reader(tmp_path):
         for s in series:
             channel = channels[s.topic]
             assert channel.message_encoding == "cdr"
-            assert schemas[channel.schema_id].name == bags._full_type(s.msgtype)
+            assert schemas[channel.schema_id].name == cdr.full_type(s.msgtype)
             assert schemas[channel.schema_id].encoding == "ros2msg"
             assert summary.statistics.channel_message_counts[channel.id] == 20
         messages = list(reader.iter_messages())
@@ -171,7 +207,7 @@ def test_bare_mcap_files_are_read(tmp_path):
         schema = writer.register_schema(bags.DISPLACEMENT_TYPE, "ros2msg", msgdef.encode())
         channel = writer.register_channel("/amb/displacement", "cdr", schema)
         for stamp, row in zip(stamps, xyz):
-            data = TYPESTORE.serialize_cdr(bags.make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE)
+            data = TYPESTORE.serialize_cdr(make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE)
             writer.add_message(channel, int(stamp), bytes(data), int(stamp))
         writer.finish()
     read = read_displacement(foreign)
@@ -185,13 +221,13 @@ def test_bare_mcap_files_are_read(tmp_path):
 @pytest.mark.parametrize("msgtype", list(MESSAGE_TYPES))
 @pytest.mark.parametrize("frame_id", ["", "a", "abc", "abcd", "sensor_x", "cinq_é", "a" * 13])
 def test_numpy_encoding_equals_rosbags_serialisation(msgtype, frame_id):
-    series = [s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if bags._full_type(s.msgtype) == MESSAGE_TYPES[msgtype]]
+    series = [s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if cdr.full_type(s.msgtype) == MESSAGE_TYPES[msgtype]]
     (s,) = series
     s = TopicSeries(s.topic, s.msgtype, s.stamps_ns, s.values, s.covariance, frame_id)
     rows = bags.encode_series(s)
     for i, stamp in enumerate(s.stamps_ns):
         covariance = None if s.covariance is None else s.covariance[i]
-        message = bags.make_message(msgtype, int(stamp), s.values[i], covariance, frame_id)
+        message = make_message(msgtype, int(stamp), s.values[i], covariance, frame_id)
         assert rows[i].tobytes() == bytes(TYPESTORE.serialize_cdr(message, MESSAGE_TYPES[msgtype])), (msgtype, i)
 
 
@@ -201,7 +237,7 @@ def test_fast_reader_equals_per_message_deserialisation(tmp_path, monkeypatch, m
     rng = np.random.default_rng(3)
     stamps = np.sort(rng.integers(0, 2**31 * 10**9, 300))
     values = rng.standard_normal((300, 3)) * 10.0 ** rng.integers(-300, 300, (300, 3))
-    covariance = rng.standard_normal((300, 3, 3)) if MESSAGE_TYPES[msgtype] in bags.COVARIANCE_TYPES else None
+    covariance = rng.standard_normal((300, 3, 3)) if MESSAGE_TYPES[msgtype] in cdr.COVARIANCE_TYPES else None
     path = write_bag(tmp_path / "bag", [TopicSeries("/x", msgtype, stamps, values, covariance, frame_id="base")])
     raws = raw_messages(path, "/x")
     want_stamps, want_values, want_covariance = deserialised(raws, MESSAGE_TYPES[msgtype])
@@ -437,7 +473,7 @@ def test_write_failing_midway_leaves_nothing(tmp_path, monkeypatch):
 @pytest.mark.parametrize("exchange", [True, False], ids=["renameat2", "two renames"])
 def test_overwrite_is_refused_unless_asked_and_then_atomic(tmp_path, monkeypatch, exchange):
     if not exchange:
-        monkeypatch.setattr(bags, "_renameat2", lambda *args: False)
+        monkeypatch.setattr(atomic_install, "_renameat2", lambda *args: False)
     stamps, xyz = displacement(30)
     for target in (tmp_path / "bag", tmp_path / "bare.mcap"):
         first = [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)]

@@ -16,7 +16,7 @@ from touchdown_ros.core.dynamics import (
     transition_jacobian,
 )
 from touchdown_ros.core.ekf import Belief, ekf, model_transition, predict, predict_with_rate, rts_smoother
-from touchdown_ros.core.estimate import GridError, detect_drop, force_std, signals, to_grid
+from touchdown_ros.core.estimate import DropDetector, GridError, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
 from touchdown_ros.io.config import load_config
@@ -401,6 +401,6 @@ def test_drop_detection_finds_onset():
     onset = 500
     z = np.where(np.arange(2000) < onset, 0.0, -0.5 * g * (t - t[onset]) ** 2)
     z = z + 1e-6 * np.random.default_rng(0).standard_normal(2000)
-    found = detect_drop(z, h, threshold=20e-6, window=0.005, gravity=g)
-    assert abs(found - onset) <= 3
-    assert detect_drop(np.zeros(100), h, 20e-6, 0.005, g) is None
+    drop = DropDetector(h, threshold=20e-6, levitated_window=0.005, gravity=g)
+    assert abs(drop.onset(z) - onset) <= 3
+    assert drop.onset(np.zeros(100)) is None

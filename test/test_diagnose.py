@@ -15,15 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from conftest import write_simulated_bag
 
 from touchdown_ros.cli import main
 from touchdown_ros.core import diagnostics as dg
+from touchdown_ros.core.impacts import impact_numbers
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import load_config
-from touchdown_ros.offline import write_drop_bag
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.params import simulator_parameters, truth_constants
-from touchdown_ros.sim.simulator import simulate_drop
 
 DURATION = 0.06  # s simulated after the drop
 
@@ -52,8 +52,7 @@ def _simulate(out, numbers, **simulator):
     truths = {}
     for number in numbers:
         condition = CAMPAIGN[number - 1]
-        record = simulate_drop(config, condition, seed=number, params=params)
-        write_drop_bag(record, config, out / f"exp_{number:02d}")
+        record = write_simulated_bag(out / f"exp_{number:02d}", number, seed=number, config=config, params=params)
         # the simulator draws the experiment's constants first from this generator
         rng = np.random.default_rng(np.random.SeedSequence([number, number]))
         truths[f"exp_{number:02d}"] = truth_constants(
@@ -192,5 +191,5 @@ def test_phases_and_impact_numbers():
     radial = np.array([0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1], bool)
     axial = np.array([0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], bool)
     np.testing.assert_array_equal(dg.contact_phase(radial, axial)[:5], [0, 1, 3, 2, 0])
-    numbers = dg.impact_numbers(radial | axial, merge_gap=5)
+    numbers = impact_numbers(radial | axial, merge_gap=5)
     assert numbers[0] == 0 and numbers[2] == 1 and numbers[-1] == 2

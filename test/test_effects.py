@@ -21,7 +21,8 @@ def test_default_model_has_no_effects_and_axial_load_adds_force():
     assert len(model.effects) == 0
     xi = jnp.array([0.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
     base = phi(model, xi)
-    loaded = model._replace(effects=fx.build(["axial_load"], {"axial_load": {"force": 2000.0}}))
+    load = fx.resolve("axial_load")
+    loaded = model._replace(effects=fx.Effects((load,), ({**load.defaults(), "force": 2000.0},)))
     out = phi(loaded, xi)
     np.testing.assert_allclose(out[6] - base[6], -2000.0 / model.rig.mass)
     np.testing.assert_allclose(out[:6], base[:6])
@@ -29,7 +30,7 @@ def test_default_model_has_no_effects_and_axial_load_adds_force():
 
 def test_dotted_path_effect_is_jittable_and_differentiable():
     model = load_config().model()
-    e = fx.build([f"{__name__}:_user_force"])
+    e = fx.Effects((fx.resolve(f"{__name__}:_user_force"),))
     assert e.values() == {"_user_force": {"F_a": 500.0}}
     xi = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 

@@ -28,12 +28,13 @@ from sensor_msgs.msg import PointCloud2
 from touchdown_ros.cli import main as touchdown
 from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.types import Coefficients
+from touchdown_ros.io import cdr
 from touchdown_ros.io.bags import TopicSeries, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
 from touchdown_ros.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
 from touchdown_ros.ros import messages
-from touchdown_ros.ros.diagnostics import LatencyHistogram
+from touchdown_ros.ros.health import LatencyHistogram
 from touchdown_ros.ros.replay import pace
 
 from test_streaming import model_drop_record
@@ -140,7 +141,7 @@ class Peer:
 
     def publish_points(self, stamps_ns: np.ndarray, xyz: np.ndarray, spacing: float | None = None) -> None:
         """Raw PointStamped samples, paced in real time by their stamps, or `spacing` s apart."""
-        blobs = messages.encode_fixed(messages.FixedLayout("amb_sensor", 3), stamps_ns, xyz)
+        blobs = messages.encode_stamped("PointStamped", stamps_ns, xyz, None, "amb_sensor")
         sent = [0]
 
         def until(due: int) -> None:
@@ -172,15 +173,13 @@ def loopback(monkeypatch):
 def drop_bag(path: Path) -> tuple[Path, str]:
     """A drop-test bag: the simulator's experiment 11 when touchdown_ros.sim is there, else the model's own drop."""
     try:
-        from touchdown_ros.offline import write_drop_bag
-        from touchdown_ros.sim.campaign import CAMPAIGN
-        from touchdown_ros.sim.simulator import simulate_drop
+        from conftest import write_simulated_bag
     except ImportError:
         stamps, measured = model_drop_record()
         write_bag(path, [TopicSeries(CONFIG.topics.displacement, "PointStamped", stamps, measured,
                                      frame_id=CONFIG.topics.frame_id)])
         return path, "core model"
-    write_drop_bag(simulate_drop(CONFIG, CAMPAIGN[10], seed=11), CONFIG, path)
+    write_simulated_bag(path, 11, seed=11, config=CONFIG)
     return path, "simulator experiment 11"
 
 
@@ -199,15 +198,15 @@ def test_raw_messages_match_rclpy_serialisation(frame_id):
     for name, cls in [("PointStamped", PointStamped), ("TwistWithCovarianceStamped", TwistWithCovarianceStamped),
                       ("AccelWithCovarianceStamped", AccelWithCovarianceStamped), ("WrenchStamped", WrenchStamped),
                       ("Vector3Stamped", Vector3Stamped)]:
-        count = messages.FLOAT64_FIELDS[name]
+        count = messages.float64_count(name)
         values = rng.standard_normal((2, count))
-        blobs = messages.encode_fixed(messages.FixedLayout(frame_id, count), stamps, values)
+        blobs = cdr.serialized(cdr.encode(stamps, values, frame_id))
         for blob, stamp, row in zip(blobs, stamps, values):
             message = deserialize_message(blob, cls)
             assert message.header.frame_id == frame_id
             assert messages.stamp_ns_of(message.header.stamp) == stamp
             again = serialize_message(message)
-            decoded_stamp, decoded = messages.decode_fixed(again, count)
+            decoded_stamp, decoded = cdr.decode_one(again, count)
             assert decoded_stamp == stamp and np.array_equal(decoded, row), name
     point = PointStamped()
     point.header.frame_id, point.header.stamp.sec, point.point.z = frame_id, 3, -2.5e-4

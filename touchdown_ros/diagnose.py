@@ -22,8 +22,8 @@ import numpy as np
 from touchdown_ros.core import diagnostics as dg
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import measurement as expected_output
-from touchdown_ros.core.ekf import Belief
 from touchdown_ros.core.estimate import PAD_BUCKET, initial_belief
+from touchdown_ros.core.impacts import impact_numbers
 from touchdown_ros.core.metrics import rmse
 from touchdown_ros.core.types import Model
 from touchdown_ros.io.bags import read_conditions
@@ -129,7 +129,7 @@ def _diagnose_bag(config: Config, path: Path, estimator, compiled: _Compiled, se
     missing = dg.MissingForce(*(np.asarray(a)[:n] for a in missing))
     smoothed = est.smoothed
     phase = dg.contact_phase(np.asarray(smoothed.radial_contact), np.asarray(smoothed.axial_contact))
-    impact = dg.impact_numbers(phase > 0)
+    impact = impact_numbers(phase > 0)
     return BagDiagnosis(Path(path), result, k_step, missing, phase, impact, read_conditions(path), model)
 
 

@@ -12,16 +12,24 @@ from touchdown_ros.core.estimate import (
     Estimate,
     Estimator,
     SignalSet,
-    detect_drop,
     force_std,
-    levitated_mean_z,
     make_estimator,
 )
 from touchdown_ros.core.input_policy import InputPolicy, RecordInput, split_record, window_is_clean
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
-from touchdown_ros.io.bags import BagError, CONDITION_PREFIX, TopicSeries, read_conditions, read_displacement, read_truth, write_bag
+from touchdown_ros.io.bags import (
+    BagError,
+    CONDITION_PREFIX,
+    TopicSeries,
+    Truth,
+    read_conditions,
+    read_displacement,
+    read_truth,
+    write_bag,
+)
 from touchdown_ros.io.config import Config
+from touchdown_ros.io.estimate_topics import estimate_series
 
 
 #: Which estimate the offline tools write: the RTS smoother's (uses the whole record, the default)
@@ -47,21 +55,12 @@ def answer_of(estimate: Estimate, answer: str) -> SignalSet:
 
 
 @dataclass(frozen=True)
-class AlignedTruth:
-    """Truth signals at the estimate's stamps (rows without truth are NaN)."""
-
-    velocity: np.ndarray  # (N, 3) m/s
-    acceleration: np.ndarray  # (N, 3) m/s^2
-    contact_force: np.ndarray  # (N, 3) N
-
-
-@dataclass(frozen=True)
 class BagEstimate:
     """One bag's estimate with what it was compared against."""
 
     path: Path
     estimate: Estimate
-    truth: AlignedTruth | None
+    truth: Truth | None  # on the estimate's stamps (rows without truth are NaN)
     summary: dict[str, Any]
     answer: str = SMOOTHED  # which of estimate.smoothed / .filtered is written and summarised
     restarts: tuple[int, ...] = ()  # rows of the estimate where the filter restarted after a gap
@@ -100,10 +99,9 @@ def estimate_bag(
     gated = bag_effects(config, path, effects)
     if coeffs is None and all(g == 1.0 for g in gated.gates) and effects is estimator.model.effects:
         gated = None  # the compiled model as it is
-    series = read_displacement(path, config.topics.displacement)
-    record = split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
+    record = read_record(config, path)
     estimate, restarts = estimate_record(config, record, estimator, path, coeffs=coeffs, effects=gated)
-    truth = _aligned_truth(path, config, estimate.stamps_ns)
+    truth = bag_truth(config, path, estimate.stamps_ns)
     summary = summarise(estimate, truth, config, answer)
     summary["input"] = input_summary(record, restarts)
     return BagEstimate(path, estimate, truth, summary, answer, restarts)
@@ -137,16 +135,14 @@ def check_bag(config: Config, path: str | Path) -> None:
     """Raise (BagError, GridError or NoDropError, naming the file) unless `estimate_bag` can estimate the
     bag: readable, valid samples, stamps on the grid, a clean levitated window, a drop."""
     path = Path(path)
-    series = read_displacement(path, config.topics.displacement)
-    find_onset(split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path)), config, path)
+    find_onset(read_record(config, path), config, path)
 
 
 def check_training_bag(config: Config, path: str | Path) -> None:
     """`check_bag`, and no gap or clock jump beyond node.bridge_gap (the trainer takes one stretch per
     bag): raise naming the file and the sample."""
     path = Path(path)
-    series = read_displacement(path, config.topics.displacement)
-    record = split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
+    record = read_record(config, path)
     if len(record.segments) > 1:
         if record.breaks:
             index, jump_ns, kind = record.breaks[0]
@@ -163,22 +159,19 @@ def check_training_bag(config: Config, path: str | Path) -> None:
 def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, int]:
     """(segment, row) of the drop onset in a record under the input policy; the levitated reference
     comes from the first segment's window, which must be clean (`window_is_clean`)."""
-    first = record.segments[0]
-    window = max(1, int(round(config.drop.levitated_window / config.sample_period)))
-    if not window_is_clean(first.etas[:window], config.drop.threshold) or len(first.etas) < window:
+    first, drop = record.segments[0], config.drop_detector()
+    window = drop.window_samples
+    if not window_is_clean(first.etas[:window], drop.threshold) or len(first.etas) < window:
         usable = np.isfinite(first.etas[:window]).all(axis=1)
         spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
         raise NoDropError(
-            f"{path}: the levitated window (first {config.drop.levitated_window * 1e3:g} ms) is not clean: "
+            f"{path}: the levitated window (first {drop.levitated_window * 1e3:g} ms) is not clean: "
             f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
             f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
         )
-    reference = levitated_mean_z(first.etas[:, 2], config.sample_period, config.drop.levitated_window)
+    reference = drop.reference(first.etas[:, 2])
     for k, segment in enumerate(record.segments):
-        onset = detect_drop(
-            segment.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window,
-            config.rig.gravity, reference=reference,
-        )
+        onset = drop.onset(segment.etas[:, 2], reference)
         if onset is not None:
             return k, onset
     raise NoDropError(
@@ -212,26 +205,19 @@ def input_summary(record: RecordInput, restarts: tuple[int, ...]) -> dict[str, A
     }
 
 
-def _aligned_truth(path: Path, config: Config, stamps_ns: np.ndarray) -> AlignedTruth | None:
-    truth = read_truth(
-        path,
-        velocity_topic=config.topics.truth_velocity,
-        acceleration_topic=config.topics.truth_acceleration,
-        contact_force_topic=config.topics.truth_contact_force,
-    )
-    if truth is None:
-        return None
-    rows = np.searchsorted(truth.stamps_ns, stamps_ns)
-    rows = np.minimum(rows, len(truth.stamps_ns) - 1)
-    matched = truth.stamps_ns[rows] == stamps_ns
-
-    def take(values: np.ndarray) -> np.ndarray:
-        return np.where(matched[:, None], values[rows], np.nan)
-
-    return AlignedTruth(take(truth.velocity), take(truth.acceleration), take(truth.contact_force))
+def read_record(config: Config, path: Path) -> RecordInput:
+    """A bag's displacements under the rig's input policy (segments between the breaks it does not bridge)."""
+    series = read_displacement(path, config.topics.displacement)
+    return split_record(series.stamps_ns, series.xyz, InputPolicy.from_config(config), str(path))
 
 
-def summarise(estimate: Estimate, truth: AlignedTruth | None, config: Config, answer: str = SMOOTHED) -> dict[str, Any]:
+def bag_truth(config: Config, path: Path, stamps_ns: np.ndarray) -> Truth | None:
+    """The bag's truth topics on `stamps_ns` (NaN where truth has no sample); None for a real drop test."""
+    topics = config.topics
+    return read_truth(path, topics.truth_velocity, topics.truth_acceleration, topics.truth_contact_force, stamps_ns)
+
+
+def summarise(estimate: Estimate, truth: Truth | None, config: Config, answer: str = SMOOTHED) -> dict[str, Any]:
     """Per-bag figures of the `answer` estimate (smoothed | filtered): eq. 19 RMSE per axis, peak
     forces and their 1-sigma, errors against truth; the filter's prediction error and health.
 
@@ -304,25 +290,7 @@ def within_two_std(force_xyz: np.ndarray, force_cov: np.ndarray, true_force: np.
 def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) -> list[TopicSeries]:
     """The `/touchdown/...` topics of an estimate (smoothed or filtered), as the live node publishes
     them (the node's are the filtered ones)."""
-    topics, frame = config.topics, config.topics.frame_id
-    chosen, stamps = answer_of(estimate, answer), estimate.stamps_ns
-    state, cov = np.asarray(chosen.state), np.asarray(chosen.state_cov)
-    return [
-        TopicSeries(topics.displacement_estimate, "PointStamped", stamps, state[:, :3], frame_id=frame),
-        TopicSeries(topics.velocity, "TwistWithCovarianceStamped", stamps, state[:, 4:], cov[:, 4:, 4:], frame_id=frame),
-        TopicSeries(
-            topics.acceleration,
-            "AccelWithCovarianceStamped",
-            stamps,
-            np.asarray(chosen.acceleration),
-            np.asarray(chosen.acceleration_cov),
-            frame_id=frame,
-        ),
-        TopicSeries(topics.contact_force, "WrenchStamped", stamps, np.asarray(chosen.force_xyz), frame_id=frame),
-        TopicSeries(
-            topics.contact_force_std, "Vector3Stamped", stamps, force_std(np.asarray(chosen.force_cov)), frame_id=frame
-        ),
-    ]
+    return estimate_series(answer_of(estimate, answer), estimate.stamps_ns, config.topics)
 
 
 #: Offline output topic marking the rows without a usable measurement (input policy): Vector3Stamped, one

@@ -11,7 +11,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.effects import Effects, gates_for
-from touchdown_ros.core.estimate import detect_drop, to_grid
+from touchdown_ros.core.estimate import to_grid
 from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.training import RECORDS, Batch, make_batch, pad_records
 from touchdown_ros.io.bags import read_conditions, read_displacement
@@ -42,9 +42,7 @@ def load_training_data(config: Config, paths: Sequence[str | Path], duration: fl
         conditions.append(read_conditions(path))
         series = read_displacement(path, config.topics.displacement)
         grid = to_grid(series.stamps_ns, series.xyz, config.sample_period, policy=InputPolicy.from_config(config), source=str(path))
-        onset = detect_drop(
-            grid.etas[:, 2], config.sample_period, config.drop.threshold, config.drop.levitated_window, config.rig.gravity
-        )
+        onset = config.drop_detector().onset(grid.etas[:, 2])
         if onset is None:
             raise NoDropError(f"{path}: no touchdown found, cannot train on it")
         record = grid.etas[onset:]

@@ -8,7 +8,7 @@ Pure functions over arrays (no ROS, no files):
   samples with the model's RK4 f and no measurement update.
 - `autocorrelation`, `cross_correlation`: residual tests with the 99 % band
   +-2.58 / sqrt(N) of a white sequence (in the spirit of MATLAB `resid`).
-- `contact_phase`, `impact_numbers`, `binned_rms`, `windowed_rms`: where it fails.
+- `contact_phase`, `binned_rms`, `windowed_rms`: where it fails (impact numbers: `core.impacts`).
 - `disturbance_smoother`: the missing force. The state is augmented with three force
   states d (N, random walk) acting on the rotor besides the model's forces; the EKF +
   Rauch-Tung-Striebel smoother of `core.ekf` over that augmented phi (RK4 by
@@ -118,22 +118,6 @@ def whiteness(e: np.ndarray, max_lag: int) -> dict:
 def contact_phase(radial_contact: np.ndarray, axial_contact: np.ndarray) -> np.ndarray:
     """0 free flight, 1 axial contact only, 2 radial contact only, 3 both (`PHASES`)."""
     return np.asarray(axial_contact, bool).astype(int) + 2 * np.asarray(radial_contact, bool).astype(int)
-
-
-def impact_numbers(contact: np.ndarray, merge_gap: int = 10) -> np.ndarray:
-    """Per sample: the number of the latest impact (first contact run = 1; runs closer than
-    merge_gap samples are one impact), 0 before the first."""
-    contact = np.asarray(contact, bool)
-    starts = np.flatnonzero(np.diff(np.concatenate([[False], contact]).astype(int)) == 1)
-    ends = np.flatnonzero(np.diff(np.concatenate([contact, [False]]).astype(int)) == -1)
-    numbers = np.zeros(len(contact), int)
-    count, last_end = 0, -(10**9)
-    for start, end in zip(starts, ends):
-        if start - last_end > merge_gap:
-            count += 1
-        numbers[start:] = count
-        last_end = end
-    return numbers
 
 
 def rms_by_label(error: np.ndarray, labels: np.ndarray, values: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:

@@ -316,14 +316,6 @@ def _lookup(spec: str) -> Effect:
     )
 
 
-def build(names, values: Mapping[str, Mapping[str, float]] | None = None) -> Effects:
-    """Effects for the given names with parameters defaulted then overridden by `values`."""
-    effs = tuple(resolve(n) for n in names)
-    values = values or {}
-    params = tuple({k: float(values.get(e.name, {}).get(k, v)) for k, v in e.defaults().items()} for e in effs)
-    return Effects(effs, params)
-
-
 def regressors(effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None) -> Array:
     """d function / d parameters at xi: (3, n_params), N (force) or m (measurement) per parameter unit."""
     p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}

@@ -84,30 +84,44 @@ def to_grid(
     return SampleGrid(segment.stamps_ns, segment.etas, int(segment.bridged_rows.sum()))
 
 
-def levitated_mean_z(z: np.ndarray, sample_period: float, window: float) -> float:
-    """Mean of the finite z (m) over the first `window` s (0 if none), the drop detection's reference."""
-    window_samples = max(1, int(round(window / sample_period)))
-    finite = np.isfinite(z[:window_samples])
-    return float(np.mean(z[:window_samples][finite])) if finite.any() else 0.0
+class DropDetector(NamedTuple):
+    """How a drop onset is found in z: it leaves its levitated mean by `threshold`; SI units.
 
-
-def detect_drop(
-    z: np.ndarray, sample_period: float, threshold: float, window: float, gravity: float, reference: float | None = None
-) -> int | None:
-    """Index of the drop onset: z leaves its levitated mean by threshold (m); None if it never does.
-
-    The crossing is moved back by the free-fall time to fall threshold, sqrt(2 threshold / g).
-    `reference`: the levitated mean z (m) when known (a later segment of a record); else the
-    mean over the first `window` s of z.
+    One rule for the offline tools and the live node (`Config.drop_detector()` builds it
+    from a rig YAML's `drop_detection.*`).
     """
-    finite = np.isfinite(z)
-    if reference is None:
-        reference = levitated_mean_z(z, sample_period, window)
-    below = np.flatnonzero(finite & (z < reference - threshold))
-    if below.size == 0:
-        return None
-    fall_samples = int(round(np.sqrt(2.0 * threshold / gravity) / sample_period))
-    return max(0, int(below[0]) - fall_samples)
+
+    sample_period: float  # s, the sensor grid
+    threshold: float  # m below the levitated mean of z
+    levitated_window: float  # s of levitation averaged for the reference
+    gravity: float  # m/s^2, for the free-fall time of the threshold
+
+    @property
+    def window_samples(self) -> int:
+        """Grid rows of the levitated window."""
+        return max(1, int(round(self.levitated_window / self.sample_period)))
+
+    @property
+    def fall_samples(self) -> int:
+        """Rows the onset lies before the threshold crossing: the free-fall time sqrt(2 threshold / g)."""
+        return int(round(np.sqrt(2.0 * self.threshold / self.gravity) / self.sample_period))
+
+    def reference(self, z: np.ndarray) -> float:
+        """Mean of the finite z (m) over the levitated window (0 if none)."""
+        window = z[: self.window_samples]
+        finite = np.isfinite(window)
+        return float(np.mean(window[finite])) if finite.any() else 0.0
+
+    def onset(self, z: np.ndarray, reference: float | None = None) -> int | None:
+        """Index of the drop onset: the first finite z below `reference` - threshold, moved back by
+        `fall_samples`; None if z never falls that far. `reference`: the levitated mean z (m) when
+        known (a later segment of a record); else `self.reference(z)`."""
+        if reference is None:
+            reference = self.reference(z)
+        below = np.flatnonzero(np.isfinite(z) & (z < reference - self.threshold))
+        if below.size == 0:
+            return None
+        return max(0, int(below[0]) - self.fall_samples)
 
 
 def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) -> Belief:

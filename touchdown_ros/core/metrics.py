@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from touchdown_ros.core.impacts import MERGE_GAP, impact_spans
+
 
 def rmse(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Root mean square error per column over the rows where both are finite (paper eq. 19)."""
@@ -18,29 +20,18 @@ def relative_peak_error(estimate: np.ndarray, reference: np.ndarray) -> float:
     return float((np.nanmax(np.abs(estimate)) - peak) / peak)
 
 
-def impacts(force: np.ndarray, threshold: float, merge_gap: int = 10) -> list[tuple[int, int, int, float]]:
-    """Impacts as (start, end, peak index, peak force): runs of force > threshold (N).
-
-    Runs closer than merge_gap samples are one impact (contact chatter at the threshold).
-    """
-    above = np.asarray(force) > threshold
-    edges = np.flatnonzero(np.diff(np.concatenate([[False], above, [False]]).astype(int)))
-    runs = [[int(s), int(e)] for s, e in zip(edges[::2], edges[1::2])]
-    merged: list[list[int]] = []
-    for start, end in runs:
-        if merged and start - merged[-1][1] < merge_gap:
-            merged[-1][1] = end
-        else:
-            merged.append([start, end])
+def impacts(force: np.ndarray, threshold: float, merge_gap: int = MERGE_GAP) -> list[tuple[int, int, int, float]]:
+    """Impacts as (start, end, peak index, peak force): `core.impacts` of force > threshold (N)."""
+    force = np.asarray(force)
     result = []
-    for start, end in merged:
-        peak = start + int(np.argmax(force[start:end]))
-        result.append((start, end, peak, float(force[peak])))
+    for start, end in zip(*impact_spans(force > threshold, merge_gap)):
+        peak = int(start) + int(np.argmax(force[start:end]))
+        result.append((int(start), int(end), peak, float(force[peak])))
     return result
 
 
 def peak_errors_per_impact(
-    estimated: np.ndarray, true: np.ndarray, threshold: float, merge_gap: int = 10, margin: int = 5
+    estimated: np.ndarray, true: np.ndarray, threshold: float, merge_gap: int = MERGE_GAP, margin: int = 5
 ) -> list[tuple[int, float, float]]:
     """For each true impact: (impact number from 1, true peak N, relative error of the estimated peak nearby)."""
     errors = []

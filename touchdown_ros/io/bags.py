@@ -10,10 +10,6 @@ Every problem with an input bag raises `BagError` (a ValueError) naming the file
 """
 from __future__ import annotations
 
-import ctypes
-import errno
-import functools
-import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -27,19 +23,12 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from touchdown_ros.io import cdr
+from touchdown_ros.io.atomic_install import check_target, fsync, fsync_tree, install
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-_T = TYPESTORE.types
 
-#: Short message names this module writes and reads (all hold a stamped 3-vector).
-MESSAGE_TYPES = {
-    "PointStamped": "geometry_msgs/msg/PointStamped",
-    "Vector3Stamped": "geometry_msgs/msg/Vector3Stamped",
-    "WrenchStamped": "geometry_msgs/msg/WrenchStamped",
-    "TwistWithCovarianceStamped": "geometry_msgs/msg/TwistWithCovarianceStamped",
-    "AccelWithCovarianceStamped": "geometry_msgs/msg/AccelWithCovarianceStamped",
-}
-COVARIANCE_TYPES = frozenset({MESSAGE_TYPES["TwistWithCovarianceStamped"], MESSAGE_TYPES["AccelWithCovarianceStamped"]})
+#: Short message names this module writes and reads (all hold a stamped 3-vector), and their full names.
+MESSAGE_TYPES = {full.rsplit("/", 1)[1]: full for full in cdr.FLOAT64_COUNT}
 DISPLACEMENT_TYPE = MESSAGE_TYPES["PointStamped"]
 DISPLACEMENT_TOPIC = "/amb/displacement"
 TRUTH_VELOCITY_TOPIC = "/truth/velocity"
@@ -101,10 +90,6 @@ class TopicSeries:
 # ------------------------------------------------------------------------------------------------ reading
 
 
-def _full_type(msgtype: str) -> str:
-    return MESSAGE_TYPES.get(msgtype, msgtype)
-
-
 def _existing(path: str | Path) -> Path:
     path = Path(path)
     if not path.exists():
@@ -158,8 +143,7 @@ def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any) -> Ve
         messages = [store.deserialize_cdr(raw, msgtype) for raw in raws]
         stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
         block = np.array([_float64_block(m, msgtype) for m in messages], dtype=np.float64).reshape(-1, k)
-    covariance = block[:, 6:].reshape(-1, 6, 6)[:, :3, :3].copy() if msgtype in COVARIANCE_TYPES else None
-    return VectorSeries(topic, msgtype, stamps, np.ascontiguousarray(block[:, :3]), covariance, frame_id)
+    return VectorSeries(topic, msgtype, stamps, *cdr.vector_and_covariance(msgtype, block), frame_id)
 
 
 def _read_topics(
@@ -276,7 +260,7 @@ def validate_displacement(series: DisplacementSeries, limit: float = MILLIMETRE_
 
 def read_vector_topic(path: str | Path, topic: str, msgtype: str | None = None) -> VectorSeries | None:
     """A stamped 3-vector topic of a bag (any of MESSAGE_TYPES, or only msgtype); None when absent."""
-    expected = {topic: _full_type(msgtype)} if msgtype else None
+    expected = {topic: cdr.full_type(msgtype)} if msgtype else None
     return _read_topics(path, [topic], expected)[1].get(topic)
 
 
@@ -327,66 +311,17 @@ def align_truth(truth: Truth, stamps_ns: np.ndarray) -> Truth:
 # ------------------------------------------------------------------------------------------------ writing
 
 
-def _header(stamp_ns: int, frame_id: str) -> Any:
-    sec, nanosec = divmod(int(stamp_ns), cdr.NS_PER_S)
-    return _T["std_msgs/msg/Header"](stamp=_T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-
-def _covariance6(block: np.ndarray | None) -> np.ndarray:
-    full = np.zeros((6, 6))
-    if block is not None:
-        full[:3, :3] = block
-    return full.ravel()
-
-
-def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.ndarray | None, frame_id: str) -> Any:
-    """One rosbags message of a MESSAGE_TYPES kind holding value (3,) (and its 3x3 covariance)."""
-    header = _header(stamp_ns, frame_id)
-    x, y, z = (float(v) for v in value)
-    Vector3, zero = _T["geometry_msgs/msg/Vector3"], _T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    full = _full_type(msgtype)
-    if full == MESSAGE_TYPES["PointStamped"]:
-        return _T[full](header=header, point=_T["geometry_msgs/msg/Point"](x=x, y=y, z=z))
-    if full == MESSAGE_TYPES["Vector3Stamped"]:
-        return _T[full](header=header, vector=Vector3(x=x, y=y, z=z))
-    if full == MESSAGE_TYPES["WrenchStamped"]:
-        return _T[full](header=header, wrench=_T["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero))
-    if full == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
-        twist = _T["geometry_msgs/msg/Twist"](linear=Vector3(x=x, y=y, z=z), angular=zero)
-        body = _T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_covariance6(covariance))
-        return _T[full](header=header, twist=body)
-    if full == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
-        accel = _T["geometry_msgs/msg/Accel"](linear=Vector3(x=x, y=y, z=z), angular=zero)
-        body = _T["geometry_msgs/msg/AccelWithCovariance"](accel=accel, covariance=_covariance6(covariance))
-        return _T[full](header=header, accel=body)
-    raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
-
-
-def _float64_rows(series: TopicSeries, msgtype: str) -> np.ndarray:
-    """(N, k) float64 fields after the header, as `make_message` fills them."""
-    values = np.asarray(series.values, dtype=np.float64)
-    n = len(values)
-    if msgtype in (MESSAGE_TYPES["PointStamped"], MESSAGE_TYPES["Vector3Stamped"]):
-        return values
-    if msgtype == MESSAGE_TYPES["WrenchStamped"]:
-        return np.concatenate([values, np.zeros((n, 3))], axis=1)
-    covariance = np.zeros((n, 6, 6))
-    if series.covariance is not None:
-        covariance[:, :3, :3] = np.asarray(series.covariance, dtype=np.float64)
-    return np.concatenate([values, np.zeros((n, 3)), covariance.reshape(n, 36)], axis=1)
-
-
 def encode_series(series: TopicSeries) -> np.ndarray:
     """(N, size) uint8: the CDR messages of a topic, row i = message i (checks the series first)."""
     check_series(series)
-    msgtype = _full_type(series.msgtype)
-    return cdr.encode(np.asarray(series.stamps_ns, dtype=np.int64), _float64_rows(series, msgtype), series.frame_id)
+    msgtype = cdr.full_type(series.msgtype)
+    return cdr.encode(series.stamps_ns, cdr.float64_block(msgtype, series.values, series.covariance), series.frame_id)
 
 
 def check_series(series: TopicSeries) -> None:
     """Raise ValueError unless the series can be written as it says."""
     where = f"topic {series.topic}"
-    msgtype = _full_type(series.msgtype)
+    msgtype = cdr.full_type(series.msgtype)
     if msgtype not in cdr.FLOAT64_COUNT:
         raise ValueError(f"{where}: cannot write message type {series.msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
     stamps = np.asarray(series.stamps_ns)
@@ -396,7 +331,7 @@ def check_series(series: TopicSeries) -> None:
     if np.shape(series.values) != (n, 3):
         raise ValueError(f"{where}: {n} stamps but values of shape {np.shape(series.values)}")
     if series.covariance is not None:
-        if msgtype not in COVARIANCE_TYPES:
+        if msgtype not in cdr.COVARIANCE_TYPES:
             raise ValueError(f"{where}: a covariance is given but {msgtype} has none")
         if np.shape(series.covariance) != (n, 3, 3):
             raise ValueError(f"{where}: covariance must be ({n}, 3, 3), got {np.shape(series.covariance)}")
@@ -418,7 +353,7 @@ def _write_messages(
     with Writer(target, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for key, value in custom_data.items():
             writer.set_custom_data(key, value)
-        connections = [writer.add_connection(s.topic, _full_type(s.msgtype), typestore=TYPESTORE) for s in series]
+        connections = [writer.add_connection(s.topic, cdr.full_type(s.msgtype), typestore=TYPESTORE) for s in series]
         for stamp, t, row in zip(all_stamps[order].tolist(), topic_of[order].tolist(), row_of[order].tolist()):
             size = sizes[t]
             writer.write(connections[t], stamp, blobs[t][row * size : (row + 1) * size])
@@ -448,7 +383,7 @@ def write_bag(
     custom_data = dict(custom_data or {})
     if not all(isinstance(k, str) and isinstance(v, str) for k, v in custom_data.items()):
         raise ValueError(f"{path}: custom_data keys and values must be strings")
-    _check_target(path, overwrite)
+    check_target(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     bare = path.suffix == ".mcap"
     if bare and custom_data:
@@ -458,9 +393,9 @@ def write_bag(
         bag = staging / (path.stem if bare else path.name)
         _write_messages(bag, series, encoded, custom_data)
         built = bag / f"{bag.name}.mcap" if bare else bag
-        _fsync_tree(built)
-        _install(built, path, overwrite)
-        _fsync(path.parent)
+        fsync_tree(built)
+        install(built, path, overwrite)
+        fsync(path.parent)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return path
@@ -481,75 +416,3 @@ def read_conditions(path: str | Path) -> dict[str, str]:
     except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as error:
         raise BagError(f"{path}: metadata.yaml is unreadable: {error}") from None
     return {str(k).removeprefix(CONDITION_PREFIX): str(v) for k, v in custom.items() if str(k).startswith(CONDITION_PREFIX)}
-
-
-def _is_bag(path: Path) -> bool:
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file() or not any(path.iterdir())
-    return path.suffix == ".mcap"
-
-
-def _check_target(path: Path, overwrite: bool) -> None:
-    if not (path.exists() or path.is_symlink()):
-        return
-    if not overwrite:
-        raise FileExistsError(f"{path} exists; refusing to overwrite it (pass overwrite)")
-    if path.is_symlink() or not _is_bag(path):
-        raise FileExistsError(f"{path} exists and is not a rosbag2 directory or .mcap file; refusing to replace it")
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_tree(path: Path) -> None:
-    for item in sorted(path.rglob("*")) if path.is_dir() else []:
-        _fsync(item)
-    _fsync(path)
-
-
-_RENAME_NOREPLACE, _RENAME_EXCHANGE, _AT_FDCWD = 1, 2, -100
-
-
-@functools.lru_cache(maxsize=1)
-def _renameat2_function() -> Any:
-    return getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
-
-
-def _renameat2(src: Path, dst: Path, flags: int) -> bool:
-    """Linux renameat2(2); False when the C library or the file system does not support it."""
-    function = _renameat2_function()
-    if function is None:
-        return False
-    if function(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), flags) == 0:
-        return True
-    code = ctypes.get_errno()
-    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
-        return False
-    if code == errno.EEXIST:
-        raise FileExistsError(code, f"{dst} appeared while writing; refusing to overwrite it", str(dst))
-    raise OSError(code, os.strerror(code), str(dst))
-
-
-def _install(built: Path, path: Path, overwrite: bool) -> None:
-    """Move built to path; an existing bag is swapped out in one step where the OS allows
-    (renameat2 RENAME_EXCHANGE) and left at built, inside the staging directory."""
-    if not (path.exists() or path.is_symlink()):
-        if not _renameat2(built, path, _RENAME_NOREPLACE):
-            if path.exists():
-                raise FileExistsError(f"{path} appeared while writing; refusing to overwrite it")
-            os.rename(built, path)
-        return
-    _check_target(path, overwrite)
-    if not _renameat2(built, path, _RENAME_EXCHANGE):
-        old = built.with_name(built.name + ".replaced")
-        os.rename(path, old)
-        try:
-            os.rename(built, path)
-        except BaseException:
-            os.rename(old, path)  # put the old bag back before the staging directory is removed
-            raise

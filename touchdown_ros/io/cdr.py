@@ -1,18 +1,21 @@
 """Whole-array CDR codec for stamped messages made of a header and a fixed float64 block.
 
-Every message type the bags hold (PointStamped, Vector3Stamped, WrenchStamped,
-Twist/AccelWithCovarianceStamped) is laid out in XCDR1 little endian as
+Every message type the package reads and writes (PointStamped, Vector3Stamped, WrenchStamped,
+Twist/AccelWithCovarianceStamped), in bags and on the live topics, is laid out in XCDR1 as
 
-    4-byte encapsulation header 00 01 xx xx
+    4-byte encapsulation header 00 01 xx xx (little endian)
     int32 sec, uint32 nanosec, uint32 len(frame_id)+1, frame_id bytes, NUL
     zero padding to 8 bytes (counted from the end of the encapsulation header)
     k float64 values
 
 so with one frame_id all messages of a topic have the same size and are encoded or
-decoded as an (N, size) uint8 array at once. Pure numpy: no rosbags, no ROS.
+decoded as a numpy record array at once. `float64_block` and `vector_and_covariance` say
+which float64 values each type holds. Pure numpy: no rosbags, no ROS.
 """
 from __future__ import annotations
 
+import functools
+import struct
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -21,7 +24,7 @@ import numpy as np
 NS_PER_S = 1_000_000_000
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
 
-#: float64 values after the header, per message type.
+#: float64 values after the header, per message type (full name).
 FLOAT64_COUNT = {
     "geometry_msgs/msg/PointStamped": 3,  # point
     "geometry_msgs/msg/Vector3Stamped": 3,  # vector
@@ -29,6 +32,19 @@ FLOAT64_COUNT = {
     "geometry_msgs/msg/TwistWithCovarianceStamped": 42,  # linear, angular, 6x6 covariance
     "geometry_msgs/msg/AccelWithCovarianceStamped": 42,
 }
+#: The types whose block ends in a 6x6 covariance (row-major) of (linear, angular).
+COVARIANCE_TYPES = frozenset(
+    {"geometry_msgs/msg/TwistWithCovarianceStamped", "geometry_msgs/msg/AccelWithCovarianceStamped"}
+)
+
+
+class MessageError(ValueError):
+    """Serialized bytes do not hold the expected message layout."""
+
+
+def full_type(msgtype: str) -> str:
+    """geometry_msgs/msg/<name> of a short name; a full name as it is."""
+    return msgtype if "/" in msgtype else f"geometry_msgs/msg/{msgtype}"
 
 
 def _align8(offset: int) -> int:
@@ -53,59 +69,131 @@ class Layout:
         return self.values_offset + 8 * self.float64_count
 
 
-def split_stamps(stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(sec int32, nanosec uint32) of int64 ns stamps, floor division like divmod; checks the int32 range."""
-    stamps = np.asarray(stamps_ns, dtype=np.int64)
-    sec, nanosec = np.divmod(stamps, NS_PER_S)
-    if sec.size and (sec.min() < -(2**31) or sec.max() >= 2**31):
-        raise ValueError("stamp outside the int32 seconds range of builtin_interfaces/Time")
-    return sec.astype("<i4"), nanosec.astype("<u4")
+@functools.lru_cache(maxsize=64)
+def _record(size: int, frame_id_size: int, float64_count: int) -> np.dtype:
+    """Structured dtype of `size`-byte messages: encapsulation, stamp, frame_id (with its length), values."""
+    layout = Layout(frame_id_size, float64_count)
+    fields = {
+        "encapsulation": (">u2", 0),
+        "sec": ("<i4", 4),
+        "nanosec": ("<u4", 8),
+        "frame_id_size": ("<u4", 12),
+        "frame_id": (("u1", (frame_id_size,)), 16),
+        "values": (("<f8", (float64_count,)), layout.values_offset),
+    }
+    return np.dtype({"names": list(fields), "formats": [f for f, _ in fields.values()],
+                     "offsets": [o for _, o in fields.values()], "itemsize": size})
+
+
+@functools.lru_cache(maxsize=64)
+def _encoding(frame_id: str, float64_count: int) -> tuple[np.dtype, np.ndarray]:
+    """(record dtype of stamp and values, uint8 bytes every message starts with: encapsulation header,
+    zero stamp, frame_id string with its size and NUL) of messages with this frame_id."""
+    name = frame_id.encode() + b"\x00"
+    layout = Layout(len(name), float64_count)
+    dtype = np.dtype({"names": ["sec", "nanosec", "values"], "formats": ["<i4", "<u4", ("<f8", (float64_count,))],
+                      "offsets": [4, 8, layout.values_offset], "itemsize": layout.size})
+    return dtype, np.frombuffer(ENCAPSULATION_LE + struct.pack("<iII", 0, 0, len(name)) + name, np.uint8)
 
 
 def encode(stamps_ns: np.ndarray, values: np.ndarray, frame_id: str) -> np.ndarray:
-    """(N, size) uint8 CDR messages of (N,) stamps and (N, k) float64 values; row i is message i."""
-    values = np.ascontiguousarray(values, dtype="<f8")
-    n, k = values.shape
-    name = frame_id.encode() + b"\x00"
-    layout = Layout(len(name), k)
-    sec, nanosec = split_stamps(stamps_ns)
-    if len(sec) != n:
-        raise ValueError(f"{len(sec)} stamps but {n} value rows")
-    rows = np.zeros((n, layout.size), dtype=np.uint8)
-    rows[:, :4] = np.frombuffer(ENCAPSULATION_LE, dtype=np.uint8)
-    rows[:, 4:8] = sec.view(np.uint8).reshape(n, 4)
-    rows[:, 8:12] = nanosec.view(np.uint8).reshape(n, 4)
-    rows[:, 12:16] = np.frombuffer(np.uint32(len(name)).astype("<u4").tobytes(), dtype=np.uint8)
-    rows[:, 16 : 16 + len(name)] = np.frombuffer(name, dtype=np.uint8)
-    rows[:, layout.values_offset :] = values.view(np.uint8).reshape(n, 8 * k)
+    """(N, size) uint8 CDR messages of (N,) stamps (ns, within the int32 seconds of builtin_interfaces/Time:
+    not checked here) and (N, k) float64 values; row i is message i."""
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    n, k = np.shape(values)
+    if len(stamps_ns) != n:
+        raise ValueError(f"{len(stamps_ns)} stamps but {n} value rows")
+    dtype, prefix = _encoding(frame_id, k)
+    records = np.zeros(n, dtype=dtype)
+    rows = records.view(np.uint8).reshape(n, dtype.itemsize)
+    rows[:, : len(prefix)] = prefix
+    sec, nanosec = np.divmod(stamps_ns, NS_PER_S)
+    records["sec"] = sec
+    records["nanosec"] = nanosec
+    records["values"] = values
     return rows
+
+
+def serialized(rows: np.ndarray) -> list[bytes]:
+    """The messages of `encode` as one bytes object each."""
+    blob, size = rows.tobytes(), rows.shape[1]
+    return [blob[i : i + size] for i in range(0, len(blob), size)]
 
 
 def decode(messages: Sequence[bytes], float64_count: int) -> tuple[np.ndarray, np.ndarray] | None:
     """(stamps_ns int64 (N,), values float64 (N, k)) of raw CDR messages, or None when they are
-    not all little endian with the same size and the same frame_id bytes (then deserialise each).
+    not all little endian with the same size and the same frame_id bytes (then decode each).
 
-    The caller must check that one message deserialises properly with the standard type: the
-    rest are then byte-identical to it except in the stamp and the values, decoded here.
+    The caller must know that one message holds the standard type (a typed subscription,
+    or deserialised once): the rest are then byte-identical to it except in the stamp and
+    the values, decoded here.
     """
     n = len(messages)
     if n == 0:
         return np.zeros(0, dtype=np.int64), np.zeros((0, float64_count))
-    size = len(messages[0])
-    if size < 16 or any(len(m) != size for m in messages):
+    first = messages[0]
+    size = len(first)
+    if size < 16 or first[:2] != ENCAPSULATION_LE[:2] or any(len(m) != size for m in messages):
         return None
-    rows = np.frombuffer(b"".join(messages), dtype=np.uint8).reshape(n, size)
-    first = rows[0]
-    if bytes(first[:2]) != ENCAPSULATION_LE[:2]:
+    (frame_id_size,) = struct.unpack_from("<I", first, 12)
+    if frame_id_size == 0 or Layout(frame_id_size, float64_count).size > size:
         return None
-    layout = Layout(int(first[12:16].view("<u4")[0]), float64_count)
-    if layout.frame_id_size == 0 or layout.size > size:
+    records = np.frombuffer(b"".join(messages), _record(size, frame_id_size, float64_count))
+    if not ((records["encapsulation"] == 1).all() and (records["frame_id_size"] == frame_id_size).all()
+            and (records["frame_id"] == records["frame_id"][0]).all()):
         return None
-    name_end = 16 + layout.frame_id_size
-    same = rows[:, :2] == first[:2]
-    if not (same.all() and (rows[:, 12:name_end] == first[12:name_end]).all()):
-        return None
-    sec = rows[:, 4:8].copy().view("<i4")[:, 0].astype(np.int64)
-    nanosec = rows[:, 8:12].copy().view("<u4")[:, 0].astype(np.int64)
-    values = rows[:, layout.values_offset : layout.size].copy().view("<f8").astype(np.float64, copy=False)
-    return sec * NS_PER_S + nanosec, values
+    return records["sec"].astype(np.int64) * NS_PER_S + records["nanosec"], records["values"].copy()
+
+
+def decode_one(data: bytes, float64_count: int, kind: str = "message") -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, float64 values) of one message of either byte order; MessageError (naming `kind`) if too short."""
+    if len(data) < 16:
+        raise MessageError(f"{kind} of {len(data)} bytes is too short")
+    order = "<" if data[1] & 1 else ">"
+    sec, nanosec, frame_id_size = struct.unpack_from(order + "iII", data, 4)
+    layout = Layout(frame_id_size, float64_count)
+    if layout.size > len(data):
+        raise MessageError(f"{kind} of {len(data)} bytes is too short for {float64_count} float64 values")
+    return sec * NS_PER_S + nanosec, struct.unpack_from(f"{order}{float64_count}d", data, layout.values_offset)
+
+
+def decode_each(messages: Sequence[bytes], float64_count: int, kind: str = "message"):
+    """(stamps (n,) int64 ns, values (n, k), errors): `decode` at once when it can, else message by
+    message (`decode_one`) in order; the messages refused are left out, their MessageErrors listed."""
+    decoded = decode(messages, float64_count)
+    if decoded is not None:
+        return (*decoded, [])
+    stamps, values, errors = [], [], []
+    for message in messages:
+        try:
+            stamp, row = decode_one(message, float64_count, kind)
+        except MessageError as error:
+            errors.append(error)
+            continue
+        stamps.append(stamp)
+        values.append(row)
+    return np.array(stamps, np.int64), np.array(values, np.float64).reshape(-1, float64_count), errors
+
+
+def float64_block(msgtype: str, vector: np.ndarray, covariance: np.ndarray | None = None) -> np.ndarray:
+    """(N, k) float64 values of messages of `msgtype` holding vector (N, 3): the point, vector, force
+    (torque zero) or linear twist / acceleration (angular zero, covariance (N, 3, 3) in the linear
+    block of the 6x6, zeros elsewhere)."""
+    vector = np.asarray(vector, dtype=np.float64)
+    n, msgtype = len(vector), full_type(msgtype)
+    count = FLOAT64_COUNT[msgtype]
+    if count == 3:
+        return vector
+    block = np.zeros((n, count))
+    block[:, :3] = vector
+    if msgtype in COVARIANCE_TYPES and covariance is not None:
+        block[:, 6:].reshape(n, 6, 6)[:, :3, :3] = covariance
+    return block
+
+
+def vector_and_covariance(msgtype: str, block: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The (N, 3) vector of `float64_block` values and, for the covariance types, the (N, 3, 3) linear block."""
+    covariance = None
+    if full_type(msgtype) in COVARIANCE_TYPES:
+        covariance = block[:, 6:].reshape(-1, 6, 6)[:, :3, :3].copy()
+    return np.ascontiguousarray(block[:, :3]), covariance

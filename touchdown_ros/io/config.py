@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -19,13 +18,13 @@ import yaml
 
 from touchdown_ros.core import effects as effects_library
 from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.estimate import DropDetector
+from touchdown_ros.core.input_policy import InputPolicy
+from touchdown_ros.core.streaming.settings import StreamSettings
 from touchdown_ros.core.types import CONTACT_LAWS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
+from touchdown_ros.io.parameters import ConfigError, ParameterReader, flatten_parameters
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
-
-
-class ConfigError(ValueError):
-    """The rig YAML is missing, malformed or holds an invalid value."""
 
 
 @dataclass(frozen=True)
@@ -99,18 +98,18 @@ class NodeSettings:
     # inline: the executor's callbacks and timer run the EKF too (no worker thread)
     receive: str = "drain"
     realtime_priority: int = 0  # SCHED_FIFO priority (1-99) of the node's threads; 0: normal scheduling
-    chunk_sizes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 512)  # compiled EKF chunk lengths
+    chunk_sizes: tuple[int, ...] = StreamSettings.chunk_sizes  # compiled EKF chunk lengths
     diagnostics_period: float = 1.0  # s
-    alarm_force: float = 5.0e4  # N, |contact force| that raises an ERROR diagnostic
-    sensor_range: float = 1.0e-3  # m, |value| at or beyond it is saturated
-    millimetre_limit: float = 0.01  # m, |value| beyond it is taken for a value in mm
-    grid_tolerance: float = 0.25  # sample periods a stamp may sit off the grid
-    max_gap: float = 0.05  # s, a longer stamp jump (either way) is a clock jump (filter restarted)
-    bridge_gap: float = 0.002  # s, holes up to this are bridged by predict-only rows; longer: filter restarted
-    rail_samples: int = 10  # identical values in a row beyond half the sensor range: a sensor pinned at a rail
-    resync_after: int = 20  # consecutive out-of-order / off-grid samples that re-anchor the grid
-    relevitation_band: float = 20.0e-6  # m around the levitated mean that counts as levitated
-    relevitation_window: float = 0.005  # s in the band that ends a touchdown
+    alarm_force: float = StreamSettings.alarm_force  # N, |contact force| that raises an ERROR diagnostic
+    sensor_range: float = InputPolicy.sensor_range  # m, |value| at or beyond it is saturated
+    millimetre_limit: float = InputPolicy.millimetre_limit  # m, |value| beyond it is taken for a value in mm
+    grid_tolerance: float = InputPolicy.grid_tolerance  # sample periods a stamp may sit off the grid
+    max_gap: float = InputPolicy.max_gap  # s, a longer stamp jump (either way) is a clock jump (filter restarted)
+    bridge_gap: float = InputPolicy.bridge_gap  # s, holes up to this are bridged by predict-only rows; longer: restart
+    rail_samples: int = InputPolicy.rail_samples  # identical values in a row beyond half the range: pinned at a rail
+    resync_after: int = StreamSettings.resync_after  # consecutive out-of-order / off-grid samples that re-anchor
+    relevitation_band: float = StreamSettings.relevitation_band  # m around the levitated mean that counts as levitated
+    relevitation_window: float = StreamSettings.relevitation_window  # s in the band that ends a touchdown
     conditions: tuple[str, ...] = ()  # test conditions on during this run (switch effects with a `when`)
 
 
@@ -153,6 +152,24 @@ class Config:
         """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
         return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
 
+    def drop_detector(self) -> DropDetector:
+        """The drop onset rule of `drop_detection.*` on this rig's sample grid."""
+        return DropDetector(self.sample_period, self.drop.threshold, self.drop.levitated_window, self.rig.gravity)
+
+    def stream_settings(self, **overrides: Any) -> StreamSettings:
+        """The streaming estimator's settings (`drop_detection.*`, `sensor.*`, `node.*`); `overrides` by field name."""
+        node = self.node
+        settings = StreamSettings(
+            policy=InputPolicy.from_config(self),
+            drop=self.drop_detector(),
+            resync_after=node.resync_after,
+            relevitation_band=node.relevitation_band,
+            relevitation_window=node.relevitation_window,
+            alarm_force=node.alarm_force,
+            chunk_sizes=tuple(node.chunk_sizes),
+        )
+        return replace(settings, **overrides)
+
     def fingerprint(self) -> str:
         """SHA-256 of the rig a coefficient file is valid for (`model_identity`)."""
         return hashlib.sha256(json.dumps(self.model_identity(), sort_keys=True).encode()).hexdigest()
@@ -190,7 +207,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML: {error}") from None
     parameters = _ros_parameters(document, path)
-    flat = dict(_flatten(parameters))
+    flat = dict(flatten_parameters(parameters))
     flat.update(overrides or {})
     return config_from_parameters(flat, source=str(path))
 
@@ -204,98 +221,6 @@ def _ros_parameters(document: Any, path: Path) -> dict[str, Any]:
     raise ConfigError(f"{path}: no '<node>: ros__parameters:' section found")
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = ""):
-    for key, value in tree.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            yield from _flatten(value, name + ".")
-        else:
-            yield name, value
-
-
-class _Reader:
-    """Takes typed values out of the flat parameter dict and remembers what it used."""
-
-    def __init__(self, flat: Mapping[str, Any], source: str):
-        self.flat, self.source, self.used = flat, source, set()
-
-    def _get(self, key: str, default: Any = ...) -> Any:
-        if key not in self.flat:
-            if default is ...:
-                raise ConfigError(f"{self.source}: missing parameter '{key}'")
-            return default
-        self.used.add(key)
-        return self.flat[key]
-
-    def number(self, key: str, default: Any = ..., positive: bool = False, non_negative: bool = False) -> float:
-        value = self._get(key, default)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            hint = ""
-            if isinstance(value, str) and _looks_numeric(value):
-                hint = " (YAML reads an exponent without sign as text: write 1.0e+8, not 1.0e8)"
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}{hint}")
-        if positive and value <= 0:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be > 0, got {value!r}")
-        if non_negative and value < 0:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be >= 0, got {value!r}")
-        return float(value)
-
-    def numbers(self, key: str, length: int | None = None, non_negative: bool = False) -> np.ndarray:
-        value = self._get(key)
-        if not isinstance(value, list) or not value or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
-        ):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of finite numbers")
-        if length is not None and len(value) != length:
-            raise ConfigError(f"{self.source}: parameter '{key}' must have {length} values, got {len(value)}")
-        array = np.asarray(value, dtype=float)
-        if non_negative and (array < 0).any():
-            raise ConfigError(f"{self.source}: parameter '{key}' must not be negative")
-        return array
-
-    def text(self, key: str, default: str, allow_empty: bool = False) -> str:
-        value = self._get(key, default)
-        if not isinstance(value, str) or not (value or allow_empty):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty string")
-        return value
-
-    def flag(self, key: str, default: bool) -> bool:
-        value = self._get(key, default)
-        if not isinstance(value, bool):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be true or false, got {value!r}")
-        return value
-
-    def choice(self, key: str, default: str, allowed: tuple[str, ...]) -> str:
-        value = self.text(key, default)
-        if value not in allowed:
-            raise ConfigError(f"{self.source}: parameter '{key}' must be one of {', '.join(allowed)}, got {value!r}")
-        return value
-
-    def integer(self, key: str, default: Any = ..., minimum: int = 1, maximum: int | None = None) -> int:
-        value = self._get(key, default)
-        if (isinstance(value, bool) or not isinstance(value, int) or value < minimum
-                or maximum is not None and value > maximum):
-            bounds = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
-            raise ConfigError(f"{self.source}: parameter '{key}' must be an integer {bounds}, got {value!r}")
-        return value
-
-    def integers(self, key: str, default: tuple[int, ...], minimum: int = 1) -> tuple[int, ...]:
-        value = self._get(key, list(default))
-        if not isinstance(value, (list, tuple)) or not value or not all(
-            isinstance(v, int) and not isinstance(v, bool) and v >= minimum for v in value
-        ):
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of integers >= {minimum}")
-        return tuple(value)
-
-
-def _looks_numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     d, v = np.meshgrid(deformation, velocity, indexing="ij")
     return np.stack([d.ravel(), v.ravel()], axis=1)
@@ -303,7 +228,7 @@ def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
 
 def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>") -> Config:
     """Build a Config from flat dotted ROS parameters (as the node receives them)."""
-    read = _Reader(flat, source)
+    read = ParameterReader(flat, source)
     rig = Rig(
         mass=read.number("rig.mass", positive=True),
         eccentricity=read.number("rig.eccentricity", non_negative=True),
@@ -373,7 +298,7 @@ def parse_contact_law(text: str) -> ContactLaw:
     return ContactLaw.of(name, n)
 
 
-def _contact_law(read: _Reader) -> ContactLaw:
+def _contact_law(read: ParameterReader) -> ContactLaw:
     """contact.law (linear | hertz) and contact.exponent (hertz only, default 1.5)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
@@ -383,7 +308,7 @@ def _contact_law(read: _Reader) -> ContactLaw:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
 
-def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
+def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettings:
     """The `training.*` keys of the two-stage identification (defaults of TrainingSettings)."""
     d = TrainingSettings()
     laws = read._get("training.contact_laws", ["linear", "hertz:1.5", "hertz:1.111"])
@@ -409,7 +334,7 @@ def _training_settings(read: _Reader, law: ContactLaw) -> TrainingSettings:
     )
 
 
-def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
+def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
     """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values."""
     active = read._get("effects.active", [])
     if not isinstance(active, list) or not all(isinstance(n, str) and n for n in active) or len(set(active)) < len(active):
@@ -440,7 +365,7 @@ def _effects(read: _Reader, flat: Mapping[str, Any]) -> Effects:
     return Effects(tuple(chosen), tuple(values[e.name] for e in chosen))
 
 
-def _effect_when(read: _Reader, flat: Mapping[str, Any]) -> dict[str, str]:
+def _effect_when(read: ParameterReader, flat: Mapping[str, Any]) -> dict[str, str]:
     """effects.when.<effect>: <condition>: the effect acts only in bags whose condition.<condition> is true."""
     active = flat.get("effects.active", [])
     when = {k.removeprefix("effects.when."): read.text(k, "") for k in flat if k.startswith("effects.when.")}
@@ -450,7 +375,7 @@ def _effect_when(read: _Reader, flat: Mapping[str, Any]) -> dict[str, str]:
     return when
 
 
-def _node_settings(read: _Reader) -> NodeSettings:
+def _node_settings(read: ParameterReader) -> NodeSettings:
     """The optional `node.*` section (defaults of NodeSettings for what is absent)."""
     d = NodeSettings()
     return NodeSettings(
@@ -483,7 +408,7 @@ def _node_settings(read: _Reader) -> NodeSettings:
     )
 
 
-def _names(read: _Reader, key: str) -> tuple[str, ...]:
+def _names(read: ParameterReader, key: str) -> tuple[str, ...]:
     value = read._get(key, [])
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
         raise ConfigError(f"{read.source}: parameter '{key}' must be a list of names")

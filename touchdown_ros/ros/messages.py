@@ -1,38 +1,27 @@
-"""Message encoding for the node and the replayer: raw CDR for the per-sample topics, PointCloud2 batches.
+"""ROS messages of the node and the replayer: per-sample messages as raw CDR, PointCloud2 batches, diagnostics.
 
 Per-sample messages are fixed-layout (a header with a fixed frame_id, then float64
-fields), so whole blocks of them are encoded and decoded with numpy and published
-as serialized bytes (`Publisher.publish(bytes)`, subscriptions with `raw=True`):
-that is what lets a Python node keep up with 10 kHz. Layouts follow the OMG XCDR1
-encoding ROS 2 uses (4-byte encapsulation header, then the message with natural
-alignment counted from the end of that header). Nothing numerical happens here.
+fields), so whole blocks of them are encoded and decoded with numpy (`io.cdr`, the
+codec the bags use too) and published as serialized bytes (`Publisher.publish(bytes)`,
+subscriptions with `raw=True`): that is what lets a Python node keep up with 10 kHz.
+Nothing numerical happens here.
 """
 from __future__ import annotations
 
 import array
-import functools
-import struct
-from dataclasses import dataclass
 from typing import Mapping, Sequence
 
+import geometry_msgs.msg
 import numpy as np
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import PointCloud2, PointField
 
-CDR_LE = b"\x00\x01\x00\x00"
-CDR_BE = b"\x00\x00\x00\x00"
-NS_PER_S = 1_000_000_000
+from touchdown_ros.core.estimate import force_std
+from touchdown_ros.io import cdr
+from touchdown_ros.io.cdr import NS_PER_S, MessageError
 
-#: float64 fields after the header, per message type (all our per-sample types).
-FLOAT64_FIELDS = {
-    "PointStamped": 3,  # point x y z
-    "Vector3Stamped": 3,  # vector x y z
-    "WrenchStamped": 6,  # force xyz, torque xyz
-    "TwistWithCovarianceStamped": 42,  # linear xyz, angular xyz, covariance 6x6 row-major
-    "AccelWithCovarianceStamped": 42,
-}
 #: Fields of the batched input cloud (sensor_msgs/PointCloud2, FLOAT64): t is s after header.stamp.
 BATCH_INPUT_FIELDS = ("t", "x", "y", "z")
 #: Fields of the batched output cloud, one point per estimated sample.
@@ -43,135 +32,33 @@ BATCH_OUTPUT_FIELDS = (
 )  # fmt: skip
 
 
-class MessageError(ValueError):
-    """A received message does not have the expected layout."""
+def message_class(msgtype: str) -> type:
+    """The rclpy class of a geometry_msgs type (short or full name)."""
+    return getattr(geometry_msgs.msg, cdr.full_type(msgtype).rsplit("/", 1)[1])
 
 
-def _align(offset: int, to: int) -> int:
-    return (offset + to - 1) // to * to
+def float64_count(msgtype: str) -> int:
+    """float64 values after the header of a message type (short or full name)."""
+    return cdr.FLOAT64_COUNT[cdr.full_type(msgtype)]
 
 
-def _values_offset(frame_length: int) -> int:
-    """Offset of the first float64 after a header whose frame_id takes `frame_length` bytes (with the NUL).
-
-    4 bytes of encapsulation, then stamp (sec, nanosec), string length and string, the
-    float64 aligned to 8 from the end of the encapsulation.
-    """
-    return 4 + _align(12 + frame_length, 8)
-
-
-@dataclass(frozen=True)
-class FixedLayout:
-    """Byte layout of `<header with frame_id> + count float64` messages."""
-
-    frame_id: str
-    count: int
-
-    @property
-    def values_offset(self) -> int:
-        """Offset of the first float64 from the start of the serialized bytes."""
-        return _values_offset(len(self.frame_id.encode()) + 1)
-
-    @property
-    def size(self) -> int:
-        return self.values_offset + 8 * self.count
-
-    def dtype(self) -> np.dtype:
-        return _stamped_values(self.size, self.values_offset, self.count)
-
-    def prefix(self) -> np.ndarray:
-        """Encapsulation header, zero stamp and frame_id (uint8), the bytes every message starts with."""
-        return _prefix(self)
-
-
-def _record(size: int, **fields: tuple) -> np.dtype:
-    """Structured dtype of `size`-byte records: name=(format, byte offset)."""
-    return np.dtype({"names": list(fields), "formats": [f for f, _ in fields.values()],
-                     "offsets": [o for _, o in fields.values()], "itemsize": size})
-
-
-@functools.lru_cache(maxsize=64)
-def _stamped_values(size: int, values_offset: int, count: int) -> np.dtype:
-    """Record of a `size`-byte header (stamp sec, nanosec) + `count` float64 message."""
-    return _record(size, sec=("<i4", 4), nanosec=("<u4", 8), values=(("<f8", (count,)), values_offset))
-
-
-@functools.lru_cache(maxsize=64)
-def _prefix(layout: FixedLayout) -> np.ndarray:
-    """Encapsulation header, zero stamp and the frame_id string (length includes the NUL), as uint8."""
-    frame = layout.frame_id.encode() + b"\x00"
-    return np.frombuffer(CDR_LE + struct.pack("<iII", 0, 0, len(frame)) + frame, np.uint8)
-
-
-def encode_fixed(layout: FixedLayout, stamps_ns: np.ndarray, values: np.ndarray) -> list[bytes]:
-    """Serialized messages, one per row of values (n, layout.count), stamped stamps_ns (n,)."""
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    n = len(stamps_ns)
-    if n == 0:
+def encode_stamped(msgtype: str, stamps_ns: np.ndarray, vector: np.ndarray, covariance: np.ndarray | None,
+                   frame_id: str) -> list[bytes]:
+    """Serialized messages of `msgtype`, one per row of vector (n, 3) (and covariance (n, 3, 3)), stamped (n,) ns."""
+    if len(stamps_ns) == 0:
         return []
-    records = np.zeros(n, dtype=layout.dtype())
-    prefix = layout.prefix()
-    records.view(np.uint8).reshape(n, layout.size)[:, : len(prefix)] = prefix
-    seconds, nanoseconds = np.divmod(stamps_ns, NS_PER_S)
-    records["sec"] = seconds
-    records["nanosec"] = nanoseconds
-    records["values"] = values
-    blob = records.tobytes()
-    size = layout.size
-    return [blob[i : i + size] for i in range(0, n * size, size)]
-
-
-def decode_fixed(data: bytes, count: int, kind: str = "message") -> tuple[int, tuple[float, ...]]:
-    """(stamp ns, count float64 values) of one serialized header + float64 message (`kind` names it in errors)."""
-    if len(data) < 16:
-        raise MessageError(f"{kind} of {len(data)} bytes is too short")
-    order = "<" if data[1] & 1 else ">"
-    sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)
-    offset = _values_offset(length)
-    if offset + 8 * count > len(data):
-        raise MessageError(f"{kind} of {len(data)} bytes is too short for {count} float64 values")
-    return sec * NS_PER_S + nanosec, struct.unpack_from(f"{order}{count}d", data, offset)
+    return cdr.serialized(cdr.encode(stamps_ns, cdr.float64_block(msgtype, vector, covariance), frame_id))
 
 
 def decode_point(data: bytes) -> tuple[int, float, float, float]:
     """(stamp ns, x, y, z) of a serialized geometry_msgs/PointStamped."""
-    stamp, (x, y, z) = decode_fixed(data, 3, "PointStamped")
+    stamp, (x, y, z) = cdr.decode_one(data, 3, "PointStamped")
     return stamp, x, y, z
 
 
 def decode_points(data: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, list[MessageError]]:
-    """Stamps (n,) int ns and xyz (n, 3) m of serialized PointStamped messages, and the errors of those refused.
-
-    The usual stream (one length, little-endian, one frame_id length) is decoded at once;
-    anything else message by message (`decode_point`), in order.
-    """
-    size = len(data[0]) if data else 0
-    if size >= 16 and all(len(d) == size for d in data):
-        joined = b"".join(data)
-        header = np.frombuffer(joined, _record(size, flags=("u1", 1), frame_length=("<u4", 12)))
-        frame_length = int(header["frame_length"][0])
-        offset = _values_offset(frame_length)
-        if offset + 24 <= size and (header["flags"] & 1).all() and (header["frame_length"] == frame_length).all():
-            point = np.frombuffer(joined, _stamped_values(size, offset, 3))
-            return point["sec"].astype(np.int64) * NS_PER_S + point["nanosec"], point["values"].copy(), []
-    stamps, xyz, errors = [], [], []
-    for message in data:
-        try:
-            stamp, x, y, z = decode_point(message)
-        except MessageError as error:
-            errors.append(error)
-            continue
-        stamps.append(stamp)
-        xyz.append((x, y, z))
-    return np.array(stamps, np.int64), np.array(xyz, np.float64).reshape(-1, 3), errors
-
-
-def covariance6(linear: np.ndarray | None, n: int) -> np.ndarray:
-    """(n, 36) row-major 6x6 covariances: the 3x3 linear block given, zeros elsewhere (as `io.bags` writes)."""
-    out = np.zeros((n, 6, 6))
-    if linear is not None:
-        out[:, :3, :3] = linear
-    return out.reshape(n, 36)
+    """Stamps (n,) int ns and xyz (n, 3) m of serialized PointStamped messages, and the errors of those refused."""
+    return cdr.decode_each(data, 3, "PointStamped")
 
 
 def time_msg(stamp_ns: int) -> Time:
@@ -247,6 +134,20 @@ def batch_cloud(stamp_ns: int, frame_id: str, stamps_ns: np.ndarray, xyz: np.nda
     """A batched displacement cloud (the node's batch input) of samples stamps_ns (n,), xyz (n, 3)."""
     t = (np.asarray(stamps_ns, np.int64) - int(stamp_ns)) / 1e9
     return cloud(stamp_ns, frame_id, BATCH_INPUT_FIELDS, np.column_stack([t, xyz]))
+
+
+def estimate_cloud(out, frame_id: str) -> PointCloud2:
+    """The batched estimate output (`BATCH_OUTPUT_FIELDS`) of a `core.streaming.StreamOutput`, one point per row,
+    stamped at its first row (t in s after it); SI units, variances on the diagonal of each covariance."""
+    stamps = out.stamps_ns
+    t = (stamps - stamps[0]) / 1e9
+    velocity_variance = np.diagonal(out.state_cov[:, 4:, 4:], axis1=1, axis2=2)
+    acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
+    columns = np.column_stack([
+        t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
+        velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact, force_std(out.force_cov),
+    ])  # fmt: skip
+    return cloud(int(stamps[0]), frame_id, BATCH_OUTPUT_FIELDS, columns)
 
 
 def diagnostic_status(

@@ -25,47 +25,41 @@ from __future__ import annotations
 import argparse
 import contextlib
 import copy
-import functools
-import math
-import os
 import sys
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import (
-    AccelWithCovarianceStamped,
-    PointStamped,
-    TwistWithCovarianceStamped,
-    Vector3Stamped,
-    WrenchStamped,
-)
-from rclpy import _rclpy_pybind11 as _rclpy
+from geometry_msgs.msg import PointStamped
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.impl.logging_severity import LoggingSeverity
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.type_support import check_is_valid_msg_type
 from sensor_msgs.msg import PointCloud2
 
-from touchdown_ros.core.effects import gates_for
-from touchdown_ros.core.estimate import force_std
-from touchdown_ros.core.streaming import (
-    StreamEvent,
-    StreamingEstimator,
-    StreamOutput,
-    StreamSettings,
-)
-from touchdown_ros.io.coefficients import CoefficientFileError, load_coefficients, sha256_of
+from touchdown_ros.core.streaming import StreamEvent, StreamingEstimator, StreamOutput
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
+from touchdown_ros.io.estimate_topics import ESTIMATE_TOPICS
 from touchdown_ros.ros import messages
-from touchdown_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsState, LatencyHistogram, ModelInfo, statuses
+from touchdown_ros.ros.inbox import Inbox
+from touchdown_ros.ros.health import DiagnosticsState, LatencyHistogram, statuses
+from touchdown_ros.ros.node_model import load_node_model
+from touchdown_ros.ros.runtime import (
+    DrainedSubscription,
+    configure_jax,
+    QuickLog,
+    make_executor,
+    qos,
+    quiet_at_shutdown,
+    raw_publish,
+    set_realtime_scheduling,
+    spin,
+)
 
 NODE_NAME = "touchdown_estimator"
 #: Parameters every rclpy node has; they are not part of the rig configuration.
@@ -77,159 +71,6 @@ EXIT_CONFIG = 2
 DRAIN_LIMIT = 512
 
 
-def qos(reliability: str, depth: int) -> QoSProfile:
-    """Keep-last QoS of the given reliability (best_effort matches sensor-data publishers)."""
-    policy = ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=policy)
-
-
-def configure_jax() -> None:
-    """Before JAX starts: persistent compilation cache (JAX_COMPILATION_CACHE_DIR or
-    ~/.cache/touchdown_ros/jax) and synchronous CPU dispatch.
-
-    The node waits for every EKF chunk it starts; dispatching it to another thread and
-    waiting there costs a thread hand-off per chunk (bench/chunk_dispatch.py).
-    """
-    import jax
-
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
-    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_dir", str(Path.home() / ".cache" / "touchdown_ros" / "jax"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-
-
-class Inbox:
-    """Samples received and not yet estimated, in arrival order; thread-safe."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._stamps: list[int] = []
-        self._xyz: list[tuple[float, float, float]] = []
-        self._blocks: list[tuple[np.ndarray, np.ndarray]] = []
-        self.count = 0
-        self.oldest_ns = 0  # time.monotonic_ns() when the oldest pending sample arrived
-
-    def add_sample(self, stamp_ns: int, x: float, y: float, z: float) -> int:
-        """Add one sample; returns the number pending."""
-        with self._lock:
-            if not self.count:
-                self.oldest_ns = time.monotonic_ns()
-            self._stamps.append(stamp_ns)
-            self._xyz.append((x, y, z))
-            self.count += 1
-            return self.count
-
-    def add_block(self, stamps_ns: np.ndarray, xyz: np.ndarray) -> int:
-        """Add a batch (after the single samples received before it); returns the number pending."""
-        with self._lock:
-            if not self.count:
-                self.oldest_ns = time.monotonic_ns()
-            self._hold_singles()
-            self._blocks.append((stamps_ns, xyz))
-            self.count += len(stamps_ns)
-            return self.count
-
-    def take(self) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """(stamps ns, xyz m, arrival of the oldest as time.monotonic_ns()) of everything pending, or None."""
-        with self._lock:
-            if not self.count:
-                return None
-            self._hold_singles()
-            blocks, self._blocks, self.count = self._blocks, [], 0
-            oldest = self.oldest_ns
-        if len(blocks) == 1:
-            return (*blocks[0], oldest)
-        return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), oldest
-
-    def _hold_singles(self) -> None:
-        if self._stamps:
-            self._blocks.append((np.array(self._stamps, np.int64), np.array(self._xyz)))
-            self._stamps, self._xyz = [], []
-
-
-class DrainedSubscription:
-    """A raw subscription that no executor serves: its owner takes the waiting messages itself.
-
-    Created on the node's handle, so it is the node's subscription in the ROS graph
-    (names resolved and remapped by rcl as for any subscription).
-    """
-
-    def __init__(self, node: Node, msg_type, topic: str, profile: QoSProfile) -> None:
-        self.msg_type = msg_type
-        check_is_valid_msg_type(msg_type)  # also loads the type support, as create_subscription does
-        with node.handle:
-            self.handle = _rclpy.Subscription(node.handle, msg_type, topic, profile.get_c_qos_profile())
-
-    def take(self, limit: int) -> list[bytes]:
-        """Up to `limit` waiting messages as serialized bytes, oldest first."""
-        taken = []
-        with self.handle:
-            take_message = self.handle.take_message
-            for _ in range(limit):
-                message = take_message(self.msg_type, True)
-                if message is None:
-                    break
-                taken.append(message[0])
-        return taken
-
-    def destroy(self) -> None:
-        self.handle.destroy_when_not_in_use()
-
-
-def raw_publish(publisher) -> Callable[[bytes], None]:
-    """Publish serialized bytes without rclpy's per-call type check and handle guard (~1 us of 5-10).
-
-    The caller holds `publisher.handle`. Falls back to `publisher.publish` if rclpy's
-    internals differ from the jazzy wheel's.
-    """
-    inner = getattr(publisher, "_Publisher__publisher", None)
-    return getattr(inner, "publish_raw", None) or publisher.publish
-
-
-class QuickLog:
-    """Log lines for the estimation path, ~20 us each instead of rclpy's ~0.4 ms.
-
-    rclpy's logger finds its caller with `inspect` (reading the source file) on every
-    call, even one its throttle then drops; that stalled the worker at each drop onset
-    and made a flood of malformed messages cost 0.4 ms each. This one goes straight to
-    rcutils (the same outputs and /rosout) under the node's logger name, with a
-    throttle per call site; it falls back to rclpy's logger if rclpy's internals differ.
-    """
-
-    def __init__(self, logger) -> None:
-        self._logger = logger
-        self._log = getattr(_rclpy, "rclpy_logging_rcutils_log", None)
-        self._last: dict[str, float] = {}
-
-    def __call__(self, severity: LoggingSeverity, message: str, throttle: float = 0.0, site: str = "") -> None:
-        """Log `message`; with `throttle` (s), at most once per that time for this `site`."""
-        if throttle:
-            now = time.monotonic()
-            if now - self._last.get(site, -math.inf) < throttle:
-                return
-            self._last[site] = now
-        if not self._logger.is_enabled_for(severity):
-            return
-        if self._log is None:
-            self._logger.log(message, severity)
-        else:
-            self._log(severity, self._logger.name, message, site or "touchdown_estimator", __file__, 0)
-
-
-def quiet_at_shutdown(callback):
-    """Wrap a callback: a publish failing because a signal has just shut the context down ends it quietly."""
-
-    @functools.wraps(callback)
-    def wrapped(self, *args):
-        try:
-            return callback(self, *args)
-        except RCLError:
-            if self.context.ok():
-                raise
-
-    return wrapped
-
-
 class EstimatorNode(Node):
     """The live estimator node; see the module docstring."""
 
@@ -237,15 +78,14 @@ class EstimatorNode(Node):
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True, **kwargs)
         self.config = self._configure(base_config, coefficients)
         node = self.config.node
-        self.model_info, model = self._load_model(node.coefficients)
-        settings = StreamSettings.from_config(self.config)
-        # the node has no bag metadata: node.conditions says which conditional effects act now
-        gates = gates_for(model.effects, {name: "true" for name in node.conditions})
-        model = model._replace(effects=model.effects.with_gates(gates))
-        self.model_info = self._warn_effects_off(self.model_info, model.effects, gates)
+        logger = self.get_logger()
+        self.config, model, self.model_info = load_node_model(self.config, logger.error, logger.warning)
+        settings = self.config.stream_settings()
         self.estimator = StreamingEstimator(model, self.config.noise, settings)
         # Before warm_up and the worker start: threads created later inherit the policy.
-        self.scheduling = self._set_scheduling(node.realtime_priority)
+        self.scheduling, refused = set_realtime_scheduling(node.realtime_priority)
+        if refused:
+            self.get_logger().warning(refused)
         started = time.monotonic()
         self.estimator.warm_up()
         self.get_logger().info(
@@ -258,12 +98,10 @@ class EstimatorNode(Node):
         self.per_sample = node.output_mode in ("per_sample", "both")
         self.batched = node.output_mode in ("batch", "both")
         if self.per_sample:
-            self.pub_point = self.create_publisher(PointStamped, topics.displacement_estimate, out_qos)
-            self.pub_twist = self.create_publisher(TwistWithCovarianceStamped, topics.velocity, out_qos)
-            self.pub_accel = self.create_publisher(AccelWithCovarianceStamped, topics.acceleration, out_qos)
-            self.pub_wrench = self.create_publisher(WrenchStamped, topics.contact_force, out_qos)
-            self.pub_force_std = self.create_publisher(Vector3Stamped, topics.contact_force_std, out_qos)
-            self._per_sample_outputs = self._encoders()
+            self._estimate_publishers = [
+                (self.create_publisher(messages.message_class(topic.msgtype), getattr(topics, topic.name), out_qos), topic)
+                for topic in ESTIMATE_TOPICS
+            ]
         if self.batched:
             self.pub_batch = self.create_publisher(PointCloud2, node.batch_output_topic, out_qos)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -324,55 +162,6 @@ class EstimatorNode(Node):
             flat["node.coefficients"] = coefficients
         source = str(base_config) if base_config else base.source
         return config_from_parameters(flat, source=f"{source} + ROS parameters of {self.get_fully_qualified_name()}")
-
-    def _set_scheduling(self, priority: int) -> str:
-        """SCHED_FIFO `priority` for every thread of the process (0: leave it); what is in effect, as text."""
-        if priority == 0:
-            return "normal"
-        try:
-            for thread in os.listdir("/proc/self/task"):
-                os.sched_setscheduler(int(thread), os.SCHED_FIFO, os.sched_param(priority))
-        except (OSError, AttributeError) as error:  # EPERM without CAP_SYS_NICE / rtprio limit; not Linux
-            for thread in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
-                with contextlib.suppress(OSError):
-                    os.sched_setscheduler(int(thread), os.SCHED_OTHER, os.sched_param(0))
-            self.get_logger().warning(f"node.realtime_priority {priority}: SCHED_FIFO refused ({error}); "
-                                      "running with normal scheduling (needs CAP_SYS_NICE or an rtprio limit)")
-            return f"normal (SCHED_FIFO {priority} refused: {error})"
-        return f"SCHED_FIFO {priority}"
-
-    def _warn_effects_off(self, info: ModelInfo, effects, gates: tuple[float, ...]) -> ModelInfo:
-        """WARN (and log) when a conditional effect of the model is off because node.conditions does not
-        name its condition: the estimates are then those of the model without it."""
-        off = [f"{e.name} (when {e.when})" for e, gate in zip(effects.effects, gates) if gate == 0.0]
-        if not off or info.level != OK:
-            return info
-        why = (f"conditional effect(s) off: {', '.join(off)}; node.conditions {list(self.config.node.conditions)} "
-               "does not name their condition (set node.conditions:=[...] when it is on in this run)")
-        self.get_logger().warning(why)
-        return ModelInfo(WARN, f"{info.message}; {why}", {**info.values, "effects_off": ", ".join(off)})
-
-    def _load_model(self, path: str):
-        """(ModelInfo, Model); a bad coefficient file falls back to the constant model (the rig's effects)."""
-        identity = {"rig_fingerprint": self.config.fingerprint()[:16]}
-        if not path:
-            return ModelInfo(OK, "constant model (node.coefficients is empty)",
-                             {"model": "constant", "coefficients": "", **identity}), self.config.model()
-        try:
-            loaded = load_coefficients(path, self.config)
-        except (CoefficientFileError, OSError, ValueError) as error:  # missing, unreadable, another rig
-            self.get_logger().error(f"{error}; running the constant model instead")
-            return ModelInfo(ERROR, f"coefficient file refused, running the constant model: {error}",
-                             {"model": "constant (fallback)", "coefficients": path, "error": str(error),
-                              **identity}), self.config.model()
-        self.config = loaded.config(self.config)  # the file's calibrated law, constants, kernel and noise
-        info = ModelInfo(
-            OK,
-            f"PKBKR coefficients from {path}",
-            {"model": "pkbkr", "coefficients": path, "coefficients_sha256": sha256_of(path)[:16],
-             "trained_on_bags": len(loaded.training.bags), "contact_law": self.config.law.label, **identity},
-        )
-        return info, loaded.model(self.config)
 
     # ------------------------------------------------------------------ input
     @quiet_at_shutdown
@@ -534,10 +323,12 @@ class EstimatorNode(Node):
         stamps = out.stamps_ns
         if self.per_sample:
             # A volatile topic nobody subscribes to is neither encoded nor sent (~5 us per message saved).
-            listened = [(publisher, encode) for publisher, encode in self._per_sample_outputs
+            listened = [(publisher, topic) for publisher, topic in self._estimate_publishers
                         if publisher.get_subscription_count()]
             if listened:
-                blobs = [encode(out) for _, encode in listened]
+                blobs = [messages.encode_stamped(topic.msgtype, stamps, topic.vector(out),
+                                                 topic.covariance and topic.covariance(out), self.frame_id)
+                         for _, topic in listened]
                 with contextlib.ExitStack() as handles:
                     for publisher, _ in listened:
                         handles.enter_context(publisher.handle)
@@ -546,43 +337,10 @@ class EstimatorNode(Node):
                         for send, blob in zip(sends, row):
                             send(blob)
         if self.batched:
-            self.pub_batch.publish(self._batch_message(out))
+            self.pub_batch.publish(messages.estimate_cloud(out, self.frame_id))
         published = time.time_ns()
         self._diagnostics.add_estimates(out, published)
         self._latency.add(published - stamps)
-
-    def _encoders(self) -> list[tuple[object, Callable[[StreamOutput], list[bytes]]]]:
-        """(publisher, serialized messages of an output) for the per-sample topics, in publishing order."""
-        layouts = {name: messages.FixedLayout(self.frame_id, count) for name, count in messages.FLOAT64_FIELDS.items()}
-
-        def fixed(name: str, columns: Callable[[StreamOutput], np.ndarray]):
-            return lambda out: messages.encode_fixed(layouts[name], out.stamps_ns, columns(out))
-
-        def with_covariance(vector: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-            n = len(vector)
-            return np.hstack([vector, np.zeros((n, 3)), messages.covariance6(covariance, n)])
-
-        return [
-            (self.pub_point, fixed("PointStamped", lambda out: out.state[:, :3])),
-            (self.pub_twist, fixed("TwistWithCovarianceStamped",
-                                   lambda out: with_covariance(out.state[:, 4:7], out.state_cov[:, 4:, 4:]))),
-            (self.pub_accel, fixed("AccelWithCovarianceStamped",
-                                   lambda out: with_covariance(out.acceleration, out.acceleration_cov))),
-            (self.pub_wrench, fixed("WrenchStamped",
-                                    lambda out: np.hstack([out.force_xyz, np.zeros((len(out.force_xyz), 3))]))),
-            (self.pub_force_std, fixed("Vector3Stamped", lambda out: force_std(out.force_cov))),
-        ]
-
-    def _batch_message(self, out: StreamOutput) -> PointCloud2:
-        stamps = out.stamps_ns
-        t = (stamps - stamps[0]) / 1e9
-        velocity_variance = np.diagonal(out.state_cov[:, 4:, 4:], axis1=1, axis2=2)
-        acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
-        columns = np.column_stack([
-            t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
-            velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact, force_std(out.force_cov),
-        ])  # fmt: skip
-        return messages.cloud(int(stamps[0]), self.frame_id, messages.BATCH_OUTPUT_FIELDS, columns)
 
     def _handle(self, events: Sequence[StreamEvent]) -> None:
         for event in events:
@@ -634,26 +392,6 @@ class EstimatorNode(Node):
             hardware_id=self.config.source.split(" + ")[0],
             scheduling=self.scheduling,
         )
-
-
-def make_executor(kind: str, context=None):
-    """rclpy EventsExecutor (events) or SingleThreadedExecutor (single)."""
-    if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
-
-
-def spin(executor, context=None, keep_going=lambda: True) -> None:
-    """Spin until the context shuts down (or keep_going() turns False).
-
-    In the jazzy wheel, EventsExecutor.spin() (and spinning without a timeout)
-    neither runs timers nor returns at shutdown; spinning in 0.2 s slices does both.
-    """
-    never = rclpy.task.Future()
-    while rclpy.ok(context=context) and keep_going():
-        executor.spin_until_future_complete(never, timeout_sec=0.2)
 
 
 def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:

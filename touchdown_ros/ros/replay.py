@@ -25,30 +25,17 @@ from typing import Sequence
 import numpy as np
 
 import rclpy
-from geometry_msgs.msg import (
-    AccelWithCovarianceStamped,
-    PointStamped,
-    TwistWithCovarianceStamped,
-    Vector3Stamped,
-    WrenchStamped,
-)
+from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from touchdown_ros.io import cdr
 from touchdown_ros.io.config import Config, ConfigError, load_config
+from touchdown_ros.io.estimate_topics import ESTIMATE_TOPICS
 from touchdown_ros.ros import messages
-from touchdown_ros.ros.node import make_executor, qos, spin
+from touchdown_ros.ros.runtime import make_executor, qos, spin
 
 EXIT_OK, EXIT_USAGE, EXIT_BAD_INPUT, EXIT_INCOMPLETE = 0, 2, 3, 4
-#: Estimate topics (config.topics attribute, message type name, message class).
-ESTIMATE_TOPICS = (
-    ("displacement_estimate", "PointStamped", PointStamped),
-    ("velocity", "TwistWithCovarianceStamped", TwistWithCovarianceStamped),
-    ("acceleration", "AccelWithCovarianceStamped", AccelWithCovarianceStamped),
-    ("contact_force", "WrenchStamped", WrenchStamped),
-    ("contact_force_std", "Vector3Stamped", Vector3Stamped),
-)
-
 
 @dataclass
 class _Track:
@@ -68,18 +55,17 @@ class Recorder:
         self.tracks: dict[str, _Track] = {}
         self.subscriptions = []
         self.last_message = 0.0
-        for attribute, msgtype, cls in ESTIMATE_TOPICS:
-            topic = getattr(config.topics, attribute)
+        for estimate_topic in ESTIMATE_TOPICS:
+            topic, msgtype = getattr(config.topics, estimate_topic.name), estimate_topic.msgtype
             track = _Track(topic, msgtype, frame_id=config.topics.frame_id)
             self.tracks[topic] = track
-            count = messages.FLOAT64_FIELDS[msgtype]
-            self.subscriptions.append(
-                node.create_subscription(cls, topic, self._callback(track, count), qos(reliability, depth), raw=True)
-            )
+            on_message = self._callback(track, messages.float64_count(msgtype))
+            self.subscriptions.append(node.create_subscription(messages.message_class(msgtype), topic, on_message,
+                                                               qos(reliability, depth), raw=True))
 
     def _callback(self, track: _Track, count: int):
         def on_message(data: bytes) -> None:
-            stamp, values = messages.decode_fixed(data, count)
+            stamp, values = cdr.decode_one(data, count)
             track.stamps.append(stamp)
             track.values.append(values)
             self.last_message = time.monotonic()
@@ -103,14 +89,10 @@ class Recorder:
         out = []
         for track in self.tracks.values():
             stamps = np.asarray(track.stamps, dtype=np.int64)
-            values = np.asarray(track.values, dtype=np.float64).reshape(len(stamps), messages.FLOAT64_FIELDS[track.msgtype])
+            block = np.asarray(track.values, dtype=np.float64).reshape(len(stamps), messages.float64_count(track.msgtype))
             stamps, first = np.unique(stamps, return_index=True)
-            values = values[first]
-            covariance = None
-            if track.msgtype in ("TwistWithCovarianceStamped", "AccelWithCovarianceStamped"):
-                covariance = values[:, 6:].reshape(-1, 6, 6)[:, :3, :3]
-            out.append(TopicSeries(track.topic, track.msgtype, stamps, values[:, :3], covariance,
-                                   frame_id=track.frame_id))
+            vector, covariance = cdr.vector_and_covariance(track.msgtype, block[first])
+            out.append(TopicSeries(track.topic, track.msgtype, stamps, vector, covariance, frame_id=track.frame_id))
         return out
 
 
@@ -156,7 +138,7 @@ def make_source(
         offsets = offsets[ends - 1]
     else:
         publisher = node.create_publisher(PointStamped, config.topics.displacement, qos(reliability, depth))
-        units = messages.encode_fixed(messages.FixedLayout(frame_id, 3), stamps_ns, xyz)
+        units = messages.encode_stamped("PointStamped", stamps_ns, xyz, None, frame_id)
     sent = [0]
 
     def publish_until(due: int) -> None:

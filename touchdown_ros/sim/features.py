@@ -5,12 +5,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from touchdown_ros.core.impacts import impact_spans
 from touchdown_ros.sim.record import DropRecord
 
 
 @dataclass(frozen=True)
 class AxialImpact:
-    """One axial contact episode (consecutive samples with z < -z0)."""
+    """One axial impact (`core.impacts`: samples with z < -z0, runs closer than its merge gap joined)."""
 
     start: float  # s, first sample in contact (record time base)
     time: float  # s, sample of the peak
@@ -41,19 +42,12 @@ class DropFeatures:
         )
 
 
-def _episodes(flags: np.ndarray) -> list[tuple[int, int]]:
-    """(start, stop) index pairs of the runs of True in flags."""
-    padded = np.concatenate([[False], flags, [False]]).astype(np.int8)
-    edges = np.flatnonzero(np.diff(padded))
-    return list(zip(edges[::2], edges[1::2]))
-
-
 def axial_impacts(record: DropRecord, min_peak: float = 0.0) -> tuple[AxialImpact, ...]:
-    """Axial contact episodes after the drop whose peak F_z exceeds min_peak (N)."""
+    """Axial impacts after the drop (`core.impacts.impact_spans`) whose peak F_z exceeds min_peak (N)."""
     start = record.drop_index
     flags, F_z, t = record.axial_contact[start:], record.F_z[start:], record.t[start:]
     impacts = []
-    for a, b in _episodes(flags):
+    for a, b in zip(*impact_spans(flags)):
         k = a + int(np.argmax(F_z[a:b]))
         if F_z[k] > min_peak:
             impacts.append(AxialImpact(start=float(t[a]), time=float(t[k]), peak=float(F_z[k])))

@@ -1,4 +1,4 @@
-"""The node's /diagnostics: what it reports and how it decides the level.
+"""The node's health, published on /diagnostics: what it reports and how it decides the level.
 
 `DiagnosticsState` collects, between two publications, what the node saw
 (estimates, latencies, alarms, events); `statuses()` turns it with the

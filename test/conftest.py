@@ -1,0 +1,30 @@
+"""What the tests share: simulated drop-test bags (the simulator's Table 1 experiments, truth included)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from touchdown_ros.io.config import Config, load_config
+from touchdown_ros.offline import write_drop_bag
+from touchdown_ros.sim.campaign import CAMPAIGN
+from touchdown_ros.sim.record import DropRecord
+from touchdown_ros.sim.simulator import simulate_drop
+
+
+def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config | None = None,
+                        params=None) -> DropRecord:
+    """Simulate Table 1 experiment `experiment` (1-based) with `seed` on the rig `config` (the reference
+    rig if None; simulator `params` if given) and write it as a drop bag at `path`; returns the record."""
+    config = config or load_config()
+    record = simulate_drop(config, CAMPAIGN[experiment - 1], seed=seed, params=params)
+    write_drop_bag(record, config, path)
+    return record
+
+
+@pytest.fixture(scope="session")
+def experiment_11_bag(tmp_path_factory) -> Path:
+    """The reference rig's experiment 11 (brake and axial load) with seed 11, written once per test run."""
+    path = tmp_path_factory.mktemp("simulated") / "exp_11"
+    write_simulated_bag(path, 11, seed=11)
+    return path
