@@ -18,7 +18,7 @@ splits the records of a batch over one device per usable core (`shard_map` in
 the first device as before.
 
 Compilation cache. The trainer's losses take 15-30 s to compile; `use_compilation_cache`
-(called by the `touchdown` command and the node) keeps compiled programs on disk, so a
+(called by the `touchdown` command, and by the node for every program) keeps compiled programs on disk, so a
 second run of the same shapes starts at once. `TOUCHDOWN_XLA_CACHE` names the folder
 (default `$XDG_CACHE_HOME/touchdown_ros/xla`, i.e. ~/.cache/...; at most 1 GiB, the least
 recently used dropped first); `off` switches it off.
@@ -62,9 +62,10 @@ CACHE_BYTES = 1 << 30  # least recently used programs are dropped beyond this
 
 
 def compilation_cache_dir(environ: dict[str, str] | None = None) -> str | None:
-    """Folder of the persistent compilation cache from the environment (None: switched off)."""
+    """Folder of the persistent compilation cache from the environment (None: switched off):
+    TOUCHDOWN_XLA_CACHE, else JAX's own JAX_COMPILATION_CACHE_DIR, else the default."""
     environ = os.environ if environ is None else environ
-    chosen = environ.get(CACHE_VARIABLE, "")
+    chosen = environ.get(CACHE_VARIABLE, "") or environ.get("JAX_COMPILATION_CACHE_DIR", "")
     if chosen.lower() == "off":
         return None
     if chosen:
@@ -73,14 +74,15 @@ def compilation_cache_dir(environ: dict[str, str] | None = None) -> str | None:
     return os.path.join(base, "touchdown_ros", "xla")
 
 
-def use_compilation_cache() -> str | None:
-    """Keep programs that took over a second to compile in `compilation_cache_dir()`; its path."""
+def use_compilation_cache(min_compile_seconds: float = 1.0) -> str | None:
+    """Keep programs that took at least `min_compile_seconds` to compile in
+    `compilation_cache_dir()`; its path."""
     import jax
 
     directory = compilation_cache_dir()
     if directory is not None:
         jax.config.update("jax_compilation_cache_dir", directory)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_seconds)
         jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
     return directory
 

@@ -12,7 +12,6 @@ import functools
 import math
 import os
 import time
-from pathlib import Path
 from typing import Callable
 
 import rclpy
@@ -23,6 +22,8 @@ from rclpy.impl.logging_severity import LoggingSeverity
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
+
+from touchdown_ros.core import xla
 
 
 def qos(reliability: str, depth: int) -> QoSProfile:
@@ -155,8 +156,8 @@ def set_realtime_scheduling(priority: int) -> tuple[str, str]:
 
 
 def configure_jax() -> None:
-    """Before JAX starts: persistent compilation cache (JAX_COMPILATION_CACHE_DIR or
-    ~/.cache/touchdown_ros/jax) and synchronous CPU dispatch.
+    """Before JAX starts: the persistent compilation cache (`core.xla.use_compilation_cache`, every
+    program: the node's start-up is what it shortens) and synchronous CPU dispatch.
 
     The node waits for every EKF chunk it starts; dispatching it to another thread and
     waiting there costs a thread hand-off per chunk (bench/chunk_dispatch.py).
@@ -164,6 +165,4 @@ def configure_jax() -> None:
     import jax
 
     jax.config.update("jax_cpu_enable_async_dispatch", False)
-    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_dir", str(Path.home() / ".cache" / "touchdown_ros" / "jax"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    xla.use_compilation_cache(min_compile_seconds=0.0)
