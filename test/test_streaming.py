@@ -7,6 +7,8 @@ reference is the offline path on the same samples: `to_grid` -> `DropDetector.on
 """
 from __future__ import annotations
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -328,6 +330,16 @@ def test_small_loop_flag_is_added_once_and_merged_into_existing_backend_options(
     merged = with_small_loop_flag("--xla_dump_to=/tmp/x --xla_backend_extra_options=a=1")
     assert merged.split() == ["--xla_dump_to=/tmp/x",
                               "--xla_backend_extra_options=a=1," + flag.split("=", 1)[1]]
+
+
+def test_compilation_cache_folder_from_the_environment():
+    from touchdown_ros.core.xla import compilation_cache_dir
+
+    assert compilation_cache_dir({}) == os.path.join(os.path.expanduser("~"), ".cache", "touchdown_ros", "xla")
+    assert compilation_cache_dir({"XDG_CACHE_HOME": "/c"}) == "/c/touchdown_ros/xla"
+    assert compilation_cache_dir({"JAX_COMPILATION_CACHE_DIR": "/j", "XDG_CACHE_HOME": "/c"}) == "/j"
+    assert compilation_cache_dir({"TOUCHDOWN_XLA_CACHE": "/t", "JAX_COMPILATION_CACHE_DIR": "/j"}) == "/t"
+    assert compilation_cache_dir({"TOUCHDOWN_XLA_CACHE": "OFF", "JAX_COMPILATION_CACHE_DIR": "/j"}) is None
 
 
 def test_importing_the_core_sets_the_xla_options_and_keeps_a_users_own():
