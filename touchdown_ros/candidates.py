@@ -299,7 +299,7 @@ def markdown(v: dict[str, Any]) -> list[str]:
     lines = [
         f"Candidates fitted with the model's constants (ln f0, Q factors) on the samples outside the held-out blocks "
         f"(one {held['block_samples']}-sample block in {held['every']}), judged on the held-out ones against the same "
-        f"fit without any (criterion: BIC difference, negative is better). {v['text']}.",
+        f"fit without any (criterion: BIC difference, negative is better).",
         "",
         "| candidate | criterion | held-out NLL fall | k-step error fall | fitted value +- sd | per bag |",
         "|---|---:|---:|---:|---|---|",
