@@ -78,6 +78,13 @@ def test_the_best_candidate_must_beat_the_baseline_with_its_parameters_counted_a
     # better by the criterion but the held-out k-step error hardly falls: unexplained
     overfit = sel.judge("overfit", (*_errors(2.9, 8.8e-6), 9), base)
     assert not sel.verdict([overfit])["explained"]
+    # better overall but worse in one contact phase: a compromise, not the missing effect
+    fitted, held = _errors(2.9, 5e-6)
+    held["free flight"] = sel.Errors(10, 2.9, np.full(3, 12e-6))
+    trading = sel.judge("trading", (fitted, held, 9), base)
+    assert trading.phase_k_step_fall["free flight"] < -0.3
+    chosen = sel.verdict([trading])
+    assert not chosen["explained"] and "free flight" in chosen["text"]
 
 
 def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_differ():

@@ -144,6 +144,10 @@ def fall(before: float, after: float) -> float:
 
 #: The best candidate must lower the held-out k-step error (norm over the axes) by at least this share.
 MIN_K_STEP_FALL = 0.1
+#: ... and must not raise it by more than this share in any contact phase: a missing effect, once
+#: added, predicts better where it acts and no worse elsewhere; a candidate that trades one phase
+#: for another compensates something else (e.g. a contact law's error) with a compromise value.
+MAX_PHASE_RISE = 0.1
 #: Criterion difference (BIC units) below which two candidates explain about equally
 #: (10: "very strong" evidence on Kass and Raftery's scale).
 COLLINEAR_MARGIN = 10.0
@@ -169,10 +173,12 @@ def judge(name: str, fit: tuple[Errors, dict[str, Errors], int], baseline: tuple
     return Judged(name, criterion, base_held["all"].nll - held["all"].nll, fall(base_held["all"].k_step_norm, held["all"].k_step_norm), phases)
 
 
-def verdict(judged: Sequence[Judged], min_fall: float = MIN_K_STEP_FALL, margin: float = COLLINEAR_MARGIN) -> dict:
+def verdict(
+    judged: Sequence[Judged], min_fall: float = MIN_K_STEP_FALL, max_rise: float = MAX_PHASE_RISE, margin: float = COLLINEAR_MARGIN
+) -> dict:
     """The missing effect: the candidate with the lowest criterion if it beats the baseline (criterion
-    < 0) and its held-out errors fall clearly (NLL lower, k-step lower by `min_fall`); else
-    unexplained. When the runner-up is within `margin` of it, the two are named collinear and the
+    < 0) and its held-out errors fall clearly (NLL lower, k-step lower by `min_fall` and in no contact
+    phase higher by more than `max_rise`); else unexplained. When the runner-up is within `margin` of it, the two are named collinear and the
     contact phase where their held-out k-step falls differ most decides between them (e.g. free
     flight, where a constant load acts and a contact effect does not)."""
     order = sorted(judged, key=lambda j: j.criterion)
@@ -194,17 +200,23 @@ def verdict(judged: Sequence[Judged], min_fall: float = MIN_K_STEP_FALL, margin:
             "k_step_fall": {j.name: j.phase_k_step_fall[phase] for j in order[:2]} if phase else {},
         }
     best = order[0]
-    explained = best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall
+    worst_phase = min(best.phase_k_step_fall, key=best.phase_k_step_fall.get, default=None)
+    worst_fall = best.phase_k_step_fall[worst_phase] if worst_phase else 0.0
+    explained = best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall and worst_fall >= -max_rise
     if explained:
+        ahead = "" if collinear else f", the next {margin_to_second:.1f} behind"
         text = (
-            f"missing effect: {best.name} (criterion {best.criterion:+.1f} vs none, the next {margin_to_second:.1f} behind; "
+            f"missing effect: {best.name} (criterion {best.criterion:+.1f} vs none{ahead}; "
             f"held-out k-step error -{100 * best.k_step_fall:.0f} %, NLL -{best.nll_fall:.3f} per sample)"
         )
     else:
-        text = (
-            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) lowers the held-out "
-            f"k-step error by {100 * best.k_step_fall:.0f} % (< {100 * min_fall:.0f} % or no NLL fall); see the residual's signature"
+        why = (
+            f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % (it trades one phase for another)"
+            if worst_fall < -max_rise
+            else f"lowers the held-out k-step error by {100 * best.k_step_fall:.0f} % (< {100 * min_fall:.0f} %, "
+            f"or the NLL or the criterion does not fall)"
         )
+        text = f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {why}; see the residual's signature"
     if collinear and collinear["phase"]:
         falls = collinear["k_step_fall"]
         text += (
