@@ -22,20 +22,20 @@ from touchdown_ros.core.calibration import (
     stage1_value_and_grad,
     standard_errors,
 )
+from touchdown_ros.core.diagnostics import PHASES
 from touchdown_ros.core.selection import (
     BASELINE,
     Errors,
+    Judged,
     SampleMeasures,
     candidate_gates,
     contact_phases,
     errors_over,
-    PHASES,
-    Judged,
-    judge,
-    verdict,
     force_scaled,
     held_out_errors,
+    judge,
     sample_measures,
+    verdict,
     with_candidates,
 )
 from touchdown_ros.core.training import Batch, hold_out, make_batch
@@ -90,7 +90,6 @@ class _Problem:
 
     def __init__(self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int):
         self.config, self.k = config, k
-        self.own = model.effects
         self.effects = with_candidates(model.effects, candidates)
         self.candidates = tuple(candidates)
         self.base = model._replace(effects=self.effects)
