@@ -10,15 +10,13 @@ Target (issue 16): <= 20 s per model.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from calibration_cost import timed
+from calibration_cost import in_turn, print_table, timed
 
 
 def main() -> int:
@@ -44,15 +42,8 @@ def main() -> int:
             cache = str(Path(tmp) / f"cache_{fit}")
             cases[f"--fit {fit}, empty compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, _emptied(cache))
             cases[f"--fit {fit}, warm compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, cache)
-        results: dict[str, list[dict]] = {name: [] for name in cases}
-        for _ in range(args.runs):
-            for name, run in cases.items():
-                results[name].append(run())
-                print(name, json.dumps(results[name][-1]), file=sys.stderr, flush=True)
-    print("| diagnose, 2 bags x 0.15 s | wall time / s (median) | peak memory / MiB | exit |\n|---|---:|---:|---:|")
-    for name, runs in results.items():
-        print(f"| {name} | {statistics.median(r['seconds'] for r in runs):.1f} | "
-              f"{max(r['peak_rss_MiB'] or 0 for r in runs):.0f} | {','.join(str(r['exit']) for r in runs)} |")
+        results = in_turn(cases, args.runs)
+    print_table(results, "diagnose, 2 bags x 0.15 s")
     return 0
 
 
