@@ -70,16 +70,27 @@ def main() -> int:
             cases[f"{args.other}: 40 steps (its default)"] = lambda: timed(
                 [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", "--steps", "40", *LOADER],
                 env=env, cwd=str(args.other))
-        results: dict[str, list[dict]] = {name: [] for name in cases}
-        for _ in range(args.runs):
-            for name, run in cases.items():  # in turn, so a drift of the machine hits all alike
-                results[name].append(run())
-                print(name, json.dumps(results[name][-1]), file=sys.stderr, flush=True)
-    print("| run | wall time / s (median) | peak memory / MiB | exit |\n|---|---:|---:|---:|")
+        results = in_turn(cases, args.runs)
+    print_table(results, "run")
+    return 0
+
+
+def in_turn(cases: dict, runs: int) -> dict[str, list[dict]]:
+    """Each case's `timed` result, the cases run in turn `runs` times (a drift of the machine hits all alike)."""
+    results: dict[str, list[dict]] = {name: [] for name in cases}
+    for _ in range(runs):
+        for name, run in cases.items():
+            results[name].append(run())
+            print(name, json.dumps(results[name][-1]), file=sys.stderr, flush=True)
+    return results
+
+
+def print_table(results: dict[str, list[dict]], title: str) -> None:
+    """Markdown table: per case the median wall time, the largest peak memory and the exit codes."""
+    print(f"| {title} | wall time / s (median) | peak memory / MiB | exit |\n|---|---:|---:|---:|")
     for name, runs in results.items():
         print(f"| {name} | {statistics.median(r['seconds'] for r in runs):.1f} | "
               f"{max(r['peak_rss_MiB'] or 0 for r in runs):.0f} | {','.join(str(r['exit']) for r in runs)} |")
-    return 0
 
 
 if __name__ == "__main__":

@@ -9,21 +9,20 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import Array
-from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
-    Q_PRIOR_WIDTH,
+    Coordinates,
     Stage1,
     apply_scales,
     convert_guess,
     effect_scales,
     log_nominal,
     sensor_noise,
+    stage1_flags,
     stage1_model_and_noise,
-    stage1_objective,
+    stage1_value_and_grad,
     standard_errors,
     strongest_correlations,
 )
@@ -102,46 +101,27 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     n_valid = int(np.sum(np.asarray(batch.valid)))
     fit_q = kind == "nll"
 
-    @jax.jit
-    def batch_value_and_grad(theta: Stage1, guess: Array, law_model: Model, records: Batch):
-        return jax.value_and_grad(stage1_objective)(
-            theta, guess, settings.prior_width, law_model, noise, scales, h, records, kind, mesh
-        )
-
-    template, unravel = ravel_pytree(Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(2), apply_scales(effects, scales, inverse=True)))
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
-    flags = Stage1(
-        jnp.ones(len(PARAMETER_NAMES)),
-        jnp.full(2, float(fit_q)),
-        Effects(effects.effects, tuple({k: 1.0 for k in p} for p in effects.params), (0.0,) * len(effects)),
-    )
-    free = np.asarray(ravel_pytree(flags)[0]) > 0.5
-    full0 = np.asarray(template, dtype=float)
-
-    def expand(x: np.ndarray) -> np.ndarray:
-        full = full0.copy()
-        full[free] = x
-        return full
+    start = Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True))
+    coordinates = Coordinates(start, stage1_flags(effects, fit_q))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
     def describe(x: np.ndarray) -> str:
-        values = np.exp(np.asarray(unravel(expand(x)).log_f0))
+        values = np.exp(np.asarray(coordinates.theta(x).log_f0))
         return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
 
     def problem(law: ContactLaw, records: Batch):
         """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
-
-        def objective(x: np.ndarray):
-            value, grad = batch_value_and_grad(unravel(expand(x)), guess_log, base, records)
-            return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[free]
-
-        x0 = full0.copy()
-        x0[: len(PARAMETER_NAMES)] = np.asarray(guess_log)
-        return guess, objective, x0[free]
+        objective = coordinates.objective(
+            lambda theta: stage1_value_and_grad(
+                theta, guess_log, base, noise, scales, records, prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh
+            )
+        )
+        return guess, objective, coordinates.initial(log_f0=guess_log)
 
     # Screen every candidate law to a loose tolerance on a few bags, then refine the best on all.
     screening = spread(len(data.records), settings.screening_bags)
@@ -156,7 +136,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             f"calibrate {law.label}", stream, describe,
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
-            model0, noise0 = stage1_model_and_noise(unravel(expand(x0)), law_model(law), noise, scales)
+            model0, noise0 = stage1_model_and_noise(coordinates.theta(x0), law_model(law), noise, scales)
             paths = [data.paths[i] for i in screening]
             losses = _per_bag_losses(model0, noise0, h, screen_batch, kind)[: len(paths)]
             bad = [str(p) for p, v in zip(paths, losses) if not np.isfinite(v)] or [str(p) for p in paths]
@@ -175,12 +155,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
     )
     require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
-    theta = unravel(expand(x))
+    theta = coordinates.theta(x)
     curvature = hessian(objective, x)
-    names = [n for n, f in zip([*PARAMETER_NAMES, *Q_NAMES, *_effect_names(effects)], free) if f]
-    prior_sd = [settings.prior_width if n in PARAMETER_NAMES else Q_PRIOR_WIDTH if n in Q_NAMES else np.inf for n in names]
-    sd, correlation = standard_errors(curvature, n_valid, np.asarray(prior_sd))
-    relative_sd = {n: float(v) for n, v in zip(names, sd)}
+    sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
+    relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
     return Calibration(
@@ -189,7 +167,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         guess=guess,
         relative_sd=relative_sd,
         held_by_prior=held,
-        correlations=tuple(strongest_correlations(names, correlation)),
+        correlations=tuple(strongest_correlations(coordinates.names, correlation)),
         convergence=convergence,
         candidates=candidates,
         sensor_noise=sigma,
@@ -202,6 +180,3 @@ def spread(count: int, most: int) -> list[int]:
         return list(range(count))
     return sorted({int(i) for i in np.round(np.linspace(0, count - 1, most))})
 
-
-def _effect_names(effects: Effects) -> list[str]:
-    return [f"{e}.{k}" for e, p in effects.values().items() for k in p]

@@ -244,9 +244,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     from touchdown_ros.diagnose import Settings, run
 
     config = _config(args)
-    settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0)
-    if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100:
-        raise ValueError("--k must be >= 1, --force-walk > 0 and --threshold in (0, 100)")
+    settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0, fitted=args.fit)
+    if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100 or args.fit < 0:
+        raise ValueError("--k must be >= 1, --force-walk > 0, --threshold in (0, 100) and --fit >= 0")
     from touchdown_ros.offline import check_bag
 
     check_writable(args.out, directory=True)
@@ -387,6 +387,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--threshold", type=float, default=50.0, help="ERR %% below which the missing force is 'unexplained' (default 50)"
+    )
+    p.add_argument(
+        "--fit", type=int, default=3,
+        help="fit FROLS's best N candidates with the model's constants and judge them on held-out samples "
+        "(default 3; 0: the FROLS ranking alone decides)",
     )
     p.set_defaults(run=cmd_diagnose)
 

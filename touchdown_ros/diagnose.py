@@ -38,7 +38,8 @@ AXES = ("x", "y", "z")
 class Settings:
     k: int = 20  # samples ahead of the k-step prediction (20 = 2 ms at 10 kHz)
     force_walk: float = 30.0  # N rms per sample: random walk of the missing-force states
-    threshold: float = 0.5  # best candidate's ERR below this: "unexplained"
+    threshold: float = 0.5  # best candidate's ERR below this: "unexplained" (FROLS alone, fitted = 0)
+    fitted: int = 3  # FROLS's best this many candidates are fitted and judged on held-out samples (0: none)
     max_lag: int = 100  # samples of the residual tests
     window: float = 0.005  # s, windows of the error-over-time table
     deformation_bins: int = 8
@@ -409,6 +410,14 @@ def diagnose(
             f"(< {100 * settings.threshold:.0f} %) of the missing force; see its signature"
         ),
     }
+    if settings.fitted:
+        from touchdown_ros.candidates import FitSettings, fit_candidates, fitted_verdict
+        from touchdown_ros.training_data import load_training_data
+
+        print(f"[diagnose {label}] fitting the {settings.fitted} best candidates (held-out blocks)", file=stream, flush=True)
+        names = [row["candidate"] for row in rows[: settings.fitted]]
+        selection = fit_candidates(config, estimator.model, load_training_data(config, bags), names, FitSettings(k=settings.k), stream)
+        verdict = fitted_verdict(verdict, selection)
     signature = _signature(config, results)
     return Diagnosis(
         label=label,
@@ -508,6 +517,7 @@ def write_outputs(diagnoses: Sequence[Diagnosis], config: Config, out: Path, set
             "k_step_seconds": settings.k * config.sample_period,
             "force_walk_N_per_sample": settings.force_walk,
             "unexplained_below_err_percent": 100 * settings.threshold,
+            "fitted_candidates": settings.fitted,
         },
         "models": [_json_ready(d, settings) for d in diagnoses],
     }
@@ -644,13 +654,19 @@ def markdown(document: dict[str, Any]) -> str:
             "",
             f"**{v['text']}**",
             "",
+        ]
+        if "frols" in v:
+            from touchdown_ros.candidates import markdown as fitted_markdown
+
+            lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
+        lines += [
             f"The model's own PKBKR coefficients (forced first) can absorb {v['forced_err_percent']:.1f} % of the "
-            f"missing-force energy; the ERR below are shares of the rest. Verdict threshold: {v['threshold_percent']:.0f} %.",
+            f"missing-force energy; the ERR below are shares of the rest. FROLS threshold: {v['threshold_percent']:.0f} %.",
             "",
-            "| rank | candidate | ERR | parameters (fitted, +- 1 std, pooled; per bag) |",
+            "| rank | candidate | ERR | parameters (linearised fit, +- 1 std, pooled; per bag) |",
             "|---:|---|---:|---|",
         ]
-        for c in v["candidates"]:
+        for c in v.get("frols", v["candidates"]):
             params = "; ".join(
                 f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']} ("
                 + ", ".join(f"{bag} {val:.4g}" for bag, val in p["per_bag"].items())

@@ -17,12 +17,15 @@ contact law to another, and kernel centres placed where the data are.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+import functools
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh
 
 from touchdown_ros.core.dynamics import polar
 from touchdown_ros.core.effects import Effects
@@ -114,6 +117,86 @@ def stage1_objective(
     data = output_error(model, fitted_noise, h, batch, mesh, kind)
     prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
     return data + prior / jnp.sum(batch.valid)
+
+
+@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
+def stage1_value_and_grad(
+    theta: Stage1,
+    guess_log_f0: Array,
+    base: Model,
+    noise: FilterNoise,
+    scales: Effects,
+    batch: Batch,
+    *,
+    prior_width: float,
+    h: float,
+    kind: str,
+    mesh: Mesh | None = None,
+) -> tuple[Array, Stage1]:
+    """`stage1_objective` and its gradient, compiled once per (prior width, h, loss, mesh): the model,
+    noise, scales and records (their effects' gates too) are traced, so other values reuse it."""
+    return jax.value_and_grad(stage1_objective)(theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh)
+
+
+class Coordinates:
+    """The stage-1 coordinates an optimiser moves: the entries of a `Stage1` flagged free (flag 1),
+    as one flat vector; the other entries keep their values in `start`."""
+
+    def __init__(self, start: Stage1, flags: Stage1):
+        flat, self._unravel = ravel_pytree(start)
+        self.start = np.asarray(flat, dtype=float)
+        self.free = np.asarray(ravel_pytree(flags)[0]) > 0.5
+        labels = Stage1(
+            list(PARAMETER_NAMES),
+            list(Q_NAMES),
+            Effects(
+                start.effects.effects,
+                tuple({k: f"{e.name}.{k}" for k in p} for e, p in zip(start.effects.effects, start.effects.params)),
+                tuple(f"{e.name}.gate" for e in start.effects.effects),
+            ),
+        )
+        self.names = [n for n, f in zip(jax.tree_util.tree_leaves(labels), self.free) if f]
+
+    def initial(self, **fields: Array) -> np.ndarray:
+        """The free coordinates at the start, with the given `Stage1` fields replaced (e.g. log_f0=...)."""
+        theta = self._unravel(self.start)._replace(**fields)
+        return np.asarray(ravel_pytree(theta)[0], dtype=float)[self.free]
+
+    def theta(self, x: np.ndarray) -> Stage1:
+        """The `Stage1` with the free coordinates x and the others from the start."""
+        full = self.start.copy()
+        full[self.free] = x
+        return self._unravel(full)
+
+    def objective(self, value_and_grad: Callable[[Stage1], tuple[Array, Stage1]]) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+        """A loss of `Stage1` with its gradient as a function of the free coordinates (for `minimise`)."""
+
+        def of_free(x: np.ndarray) -> tuple[float, np.ndarray]:
+            value, grad = value_and_grad(self.theta(x))
+            return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[self.free]
+
+        return of_free
+
+    def prior_sd(self, prior_width: float) -> np.ndarray:
+        """Prior sd of each free coordinate: prior_width for ln f0, Q_PRIOR_WIDTH for ln q, none (inf) for effects."""
+        return np.asarray(
+            [prior_width if n in PARAMETER_NAMES else Q_PRIOR_WIDTH if n in Q_NAMES else np.inf for n in self.names]
+        )
+
+
+def stage1_flags(effects: Effects, fit_q: bool, fit_f0: bool = True, fitted_effects: Sequence[str] | None = None) -> Stage1:
+    """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q) and the parameters of the
+    effects named in fitted_effects (default: all), never the gates."""
+    chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
+    return Stage1(
+        jnp.full(len(PARAMETER_NAMES), float(fit_f0)),
+        jnp.full(len(Q_NAMES), float(fit_q)),
+        Effects(
+            effects.effects,
+            tuple({k: float(e.name in chosen) for k in p} for e, p in zip(effects.effects, effects.params)),
+            (0.0,) * len(effects),
+        ),
+    )
 
 
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:

@@ -1,0 +1,59 @@
+"""Wall time of `touchdown diagnose` on two 0.15 s drops (Table 1's experiments 9 and 11, the axial
+loader on) from their stage-1 calibration, compilation included, each run in its own process:
+with the candidates fitted (the default, --fit 3) and the FROLS pass alone (--fit 0), from an empty
+compilation cache and once more on the cache the first run filled.
+
+    .venv/bin/python bench/diagnose_cost.py [--runs 1]
+
+Target (issue 16): <= 20 s per model.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from calibration_cost import in_turn, print_table, timed
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=int, default=1)
+    args = parser.parse_args()
+    python = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        bags_dir = Path(tmp) / "bags"
+        touchdown = [python, "-m", "touchdown_ros.cli"]
+        subprocess.run([*touchdown, "simulate", "--experiment", "9", "11", "-o", str(bags_dir)], check=True)
+        bags = [str(bags_dir / "exp_09"), str(bags_dir / "exp_11")]
+        calibrated = str(Path(tmp) / "calibrated.yaml")
+        subprocess.run([*touchdown, "train", *bags, "-o", calibrated, "--steps", "0"], check=True, stderr=subprocess.DEVNULL)
+
+        def diagnose(fit: int, cache: str) -> dict:
+            out = str(Path(tmp) / "diagnosis")
+            env = dict(os.environ, TOUCHDOWN_XLA_CACHE=cache)
+            return timed([*touchdown, "diagnose", *bags, "--coeffs", calibrated, "--out", out, "--fit", str(fit)], env=env)
+
+        cases = {}
+        for fit in (3, 0):
+            cache = str(Path(tmp) / f"cache_{fit}")
+            cases[f"--fit {fit}, empty compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, _emptied(cache))
+            cases[f"--fit {fit}, warm compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, cache)
+        results = in_turn(cases, args.runs)
+    print_table(results, "diagnose, 2 bags x 0.15 s")
+    return 0
+
+
+def _emptied(folder: str) -> str:
+    """The folder, emptied of a compilation cache a previous run left."""
+    import shutil
+
+    shutil.rmtree(folder, ignore_errors=True)
+    return folder
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,102 @@
+"""Choosing candidates by what fitting them achieves (core.selection, issue #16): the pure parts."""
+import jax.numpy as jnp
+import numpy as np
+
+from touchdown_ros.core import effects as fx
+from touchdown_ros.core import selection as sel
+from touchdown_ros.core.calibration import Coordinates, Stage1, stage1_flags
+from touchdown_ros.core.types import PARAMETER_NAMES
+from touchdown_ros.io.config import load_config
+
+
+def test_candidates_join_the_model_switched_by_their_gates():
+    own = fx.build(["axial_load"])
+    effects = sel.with_candidates(own, [fx.LIBRARY["magnetic_stiffness"], fx.LIBRARY["radial_load"]])
+    assert effects.names == ("axial_load", "magnetic_stiffness", "radial_load")
+    gates = sel.candidate_gates(np.array([[1.0], [0.0]]), 2, 1)
+    np.testing.assert_array_equal(gates, [[1, 0, 1], [0, 0, 1]])
+    np.testing.assert_array_equal(sel.candidate_gates(np.array([[1.0], [0.0]]), 2, None), [[1, 0, 0], [0, 0, 0]])
+    xi = jnp.array([1e-4, 0.0, -2e-4, 0.0, 0.0, 0.0, 0.0])
+    rig = load_config().rig
+    off = effects.with_gates(jnp.array([1.0, 0.0, 0.0])).force(xi, rig)
+    np.testing.assert_allclose(off, [0.0, 0.0, -1000.0])
+    on = effects.with_gates(jnp.array([1.0, 1.0, 0.0])).force(xi, rig)
+    np.testing.assert_allclose(on, [1e5 * 1e-4, 0.0, -1000.0 - 1e5 * 2e-4])
+
+
+def test_coordinates_name_each_free_entry_in_the_flattening_order():
+    effects = fx.build(["magnetic_stiffness", "axial_load"], {"magnetic_stiffness": {"k_radial": 3.0, "k_axial": 4.0}})
+    start = Stage1(jnp.arange(6.0), jnp.array([10.0, 11.0]), effects)
+    coordinates = Coordinates(start, stage1_flags(effects, True, fitted_effects=["magnetic_stiffness"]))
+    assert coordinates.names == [*PARAMETER_NAMES, "q_radial", "q_axial", "magnetic_stiffness.k_axial", "magnetic_stiffness.k_radial"]
+    x = coordinates.initial()
+    np.testing.assert_array_equal(x, [0, 1, 2, 3, 4, 5, 10, 11, 4, 3])
+    theta = coordinates.theta(x + 1.0)
+    assert float(theta.effects.params[0]["k_radial"]) == 4.0 and float(theta.effects.params[1]["force"]) == 1000.0
+    only_load = Coordinates(start, stage1_flags(effects, False, fit_f0=False, fitted_effects=["axial_load"]))
+    assert only_load.names == ["axial_load.force"]
+    assert np.isinf(only_load.prior_sd(1.6)).all()
+
+
+def test_candidate_scales_move_the_force_by_the_given_size():
+    rig = load_config().rig
+    effects = sel.with_candidates(fx.Effects(), [fx.LIBRARY["axial_load"], fx.LIBRARY["magnetic_stiffness"]])
+    states = jnp.zeros((50, 7)).at[:, 2].set(jnp.linspace(-1e-4, 1e-4, 50))
+    scaled = sel.force_scaled(effects, ["axial_load", "magnetic_stiffness"], states, rig, 2000.0)
+    assert abs(scaled.params[0]["force"] - 2000.0) < 1e-9
+    rms_z = float(jnp.sqrt(jnp.mean(states[:, 2] ** 2)))
+    np.testing.assert_allclose(scaled.params[1]["k_axial"], 2000.0 / rms_z)
+    assert scaled.params[1]["k_radial"] == effects.params[1]["k_radial"]  # no radial displacement: kept
+
+
+def test_phases_from_states():
+    rig = load_config().rig
+    states = np.zeros((4, 7))
+    states[1, 2] = -rig.axial_clearance - 1e-6
+    states[2, 0] = rig.radial_clearance + 1e-6
+    states[3, [0, 2]] = rig.radial_clearance + 1e-6, -rig.axial_clearance - 1e-6
+    np.testing.assert_array_equal(sel.contact_phases(states, rig), [0, 1, 2, 3])
+
+
+def _errors(nll, k):
+    held = {p: sel.Errors(10, nll, np.array([k, k, k])) for p in ("all", *sel.PHASES)}
+    return sel.Errors(1000, nll, np.array([k, k, k])), held
+
+
+def test_the_best_candidate_must_beat_the_baseline_with_its_parameters_counted_and_on_held_out_samples():
+    base = (*_errors(3.0, 9e-6), 8)
+    strong = sel.judge("strong", (*_errors(2.9, 5e-6), 9), base)
+    assert strong.criterion < -90 and abs(strong.nll_fall - 0.1) < 1e-12 and abs(strong.k_step_fall - 4 / 9) < 1e-12
+    # a fit that is better by less than its extra parameters' cost loses to the baseline
+    marginal = sel.judge("marginal", (*_errors(2.999, 8.9e-6), 10), base)
+    assert marginal.criterion > 0
+    chosen = sel.verdict([marginal, strong])
+    assert chosen["explained"] and chosen["best"] == "strong" and chosen["collinear"] is None
+    assert chosen["margin_to_second"] > 90
+    alone = sel.verdict([marginal])
+    assert not alone["explained"] and "unexplained" in alone["text"]
+    # better by the criterion but the held-out k-step error hardly falls: unexplained
+    overfit = sel.judge("overfit", (*_errors(2.9, 8.8e-6), 9), base)
+    assert not sel.verdict([overfit])["explained"]
+    # better overall but worse in one contact phase: a compromise, not the missing effect
+    fitted, held = _errors(2.9, 5e-6)
+    held["free flight"] = sel.Errors(10, 2.9, np.full(3, 12e-6))
+    trading = sel.judge("trading", (fitted, held, 9), base)
+    assert trading.phase_k_step_fall["free flight"] < -0.3
+    chosen = sel.verdict([trading])
+    assert not chosen["explained"] and "free flight" in chosen["text"]
+
+
+def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_differ():
+    base_fitted, base_held = _errors(3.0, 9e-6)
+    base = (base_fitted, base_held, 8)
+    load_fitted, load_held = _errors(2.9, 5e-6)
+    stiff_fitted, stiff_held = _errors(2.8999, 5e-6)  # ahead by the criterion, 0.1
+    load_held["free flight"] = sel.Errors(10, 2.9, np.full(3, 3e-6))
+    stiff_held["free flight"] = sel.Errors(10, 2.9, np.full(3, 8.5e-6))
+    load = sel.judge("load", (load_fitted, load_held, 9), base)
+    stiff = sel.judge("stiffness", (stiff_fitted, stiff_held, 9), base)
+    assert 0 < load.criterion - stiff.criterion < sel.COLLINEAR_MARGIN
+    chosen = sel.verdict([stiff, load])
+    assert chosen["best"] == "load" and chosen["collinear"]["phase"] == "free flight"
+    assert chosen["collinear"]["candidates"] == ["load", "stiffness"] and "free flight" in chosen["text"]

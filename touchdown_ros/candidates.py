@@ -1,0 +1,326 @@
+"""Fit each candidate effect with the calibrated model on bags with held-out blocks and judge it by
+what the fit achieves on the held-out samples (core.selection); one compilation serves them all."""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from touchdown_ros.core import effects as fx
+from touchdown_ros.core.calibration import (
+    Coordinates,
+    Stage1,
+    apply_scales,
+    effect_scales,
+    log_nominal,
+    stage1_flags,
+    stage1_model_and_noise,
+    stage1_value_and_grad,
+    standard_errors,
+)
+from touchdown_ros.core.diagnostics import PHASES
+from touchdown_ros.core.selection import (
+    BASELINE,
+    Errors,
+    Judged,
+    SampleMeasures,
+    candidate_gates,
+    contact_phases,
+    errors_over,
+    force_scaled,
+    held_out_errors,
+    judge,
+    sample_measures,
+    verdict,
+    with_candidates,
+)
+from touchdown_ros.core.training import Batch, hold_out, make_batch
+from touchdown_ros.core.types import PARAMETER_NAMES, Model
+from touchdown_ros.io.config import Config
+from touchdown_ros.optimise import Convergence, hessian, minimise
+from touchdown_ros.training_data import TrainingData, place, record_mesh
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """How each candidate is fitted and measured."""
+
+    k: int = 20  # samples ahead of the k-step prediction
+    steps: int = 60  # cap on L-BFGS iterations per fit
+    tolerance: float = 1.0e-5  # relative loss change that counts as converged
+    per_bag: int = 2  # the best this many candidates are also fitted bag by bag
+
+
+@dataclass
+class CandidateFit:
+    """One candidate fitted with the model's constants on the fitted samples, measured on the held-out ones."""
+
+    name: str
+    values: dict[str, float]  # fitted physical parameters (unit of `core.effects`)
+    sd: dict[str, float]  # their standard errors from the curvature of the loss
+    units: dict[str, str]
+    nominal: dict[str, float]  # the model's constants f0 refitted with it
+    fitted: Errors  # on the fitted samples
+    held_out: dict[str, Errors]  # "all" and per contact phase
+    parameters: int  # free coordinates of the fit (ln f0, ln q, the candidate's)
+    convergence: Convergence
+    per_bag: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)  # bag -> parameter -> (value, sd)
+
+
+@dataclass
+class Selection:
+    """Every candidate's fit (the baseline first) and the bags they were fitted on."""
+
+    bags: list[str]
+    fits: list[CandidateFit]
+    held_out_every: int
+    held_out_block: int  # samples
+
+    @property
+    def baseline(self) -> CandidateFit:
+        return self.fits[0]
+
+
+class _Problem:
+    """The calibrated model with every candidate, its batch and the one compiled objective."""
+
+    def __init__(self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int):
+        self.config, self.k = config, k
+        self.effects = with_candidates(model.effects, candidates)
+        self.candidates = tuple(candidates)
+        self.base = model._replace(effects=self.effects)
+        self.noise = config.noise
+        self.scales = effect_scales(self.effects)
+        self.guess = jnp.asarray(log_nominal(config.nominal))
+        self.mesh = record_mesh()
+        settings = config.training
+        self.block = max(1, round(settings.held_out_block / config.sample_period))
+        self.every = settings.held_out_every
+        gates = [fx.gates_for(model.effects, c) for c in (data.conditions or ({},) * len(data.records))]
+        batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=gates)
+        self.batch = hold_out(batch, self.block, self.every)
+        self.start = Stage1(self.guess, jnp.zeros(2), apply_scales(self.effects, self.scales, inverse=True))
+        self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
+
+    def rescale(self, states: np.ndarray) -> None:
+        """Scale the candidates' parameters by the force they move along these states (`force_scaled`:
+        one coordinate unit is a force of the rotor's weight)."""
+        weight = self.config.rig.mass * self.config.rig.gravity
+        names = [c.name for c in self.candidates]
+        self.scales = force_scaled(self.scales, names, jnp.asarray(states), self.config.rig, weight)
+        self.start = self.start._replace(effects=apply_scales(self.effects, self.scales, inverse=True))
+
+    def gated(self, chosen: int | None, record: int | None = None) -> Batch:
+        """The batch with candidate `chosen` switched on (None: the baseline), restricted to one record."""
+        gates = candidate_gates(np.asarray(self.batch.gates), len(self.candidates), chosen)
+        batch = self.batch._replace(gates=jnp.asarray(gates))
+        if record is not None:
+            batch = batch._replace(valid=batch.valid & (jnp.arange(batch.valid.shape[0]) == record)[:, None])
+        return batch
+
+    def objective(self, coordinates: Coordinates, batch: Batch):
+        placed = place(batch, self.mesh)
+        settings = self.config.training
+        return coordinates.objective(
+            lambda theta: stage1_value_and_grad(
+                theta, self.guess, self.base, self.noise, self.scales, placed,
+                prior_width=settings.prior_width, h=self.config.sample_period, kind="nll", mesh=self.mesh,
+            )
+        )
+
+    def physical(self, theta: Stage1, name: str) -> dict[str, float]:
+        index = self.effects.names.index(name)
+        return {k: float(v) * self.scales.params[index][k] for k, v in theta.effects.params[index].items()}
+
+    def evaluate(self, theta: Stage1, batch: Batch) -> SampleMeasures:
+        model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
+        return self.measure(model, noise, self.config.sample_period, batch, self.k)
+
+
+def fit_candidates(
+    config: Config,
+    model: Model,
+    data: TrainingData,
+    names: Sequence[str],
+    settings: FitSettings = FitSettings(),
+    stream=sys.stderr,
+) -> Selection:
+    """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
+    factors and the model's own effects, from the calibrated values of `config` (the coefficient
+    file's or the YAML's), on the records' fitted samples; measure each on the held-out samples;
+    fit the `settings.per_bag` best (by the criterion) again bag by bag, their constants kept."""
+    candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
+    problem = _Problem(config, model, candidates, data, settings.k)
+    fits: list[CandidateFit] = []
+    thetas = {}
+    for chosen, effect in [(None, None), *enumerate(candidates)]:
+        name = BASELINE if effect is None else effect.name
+        fitted_effects = [*model.effects.names, *([effect.name] if effect else [])]
+        coordinates = Coordinates(problem.start, stage1_flags(problem.effects, True, fitted_effects=fitted_effects))
+        batch = problem.gated(chosen)
+        objective = problem.objective(coordinates, batch)
+        x, convergence = minimise(objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}", stream)
+        theta = coordinates.theta(x)
+        measures = problem.evaluate(theta, batch)
+        if effect is None:
+            problem.rescale(np.asarray(measures.states)[np.asarray(batch.valid)])
+            phases = contact_phases(np.asarray(measures.states), config.rig)
+        fitted_rows = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
+        values, sd = {}, {}
+        if effect is not None:
+            values = problem.physical(theta, effect.name)
+            sd = _effect_sd(problem, coordinates, objective, x, int(fitted_rows.sum()), effect.name)
+        fits.append(
+            CandidateFit(
+                name=name,
+                values=values,
+                sd=sd,
+                units={k: v[1] for k, v in effect.parameters.items()} if effect else {},
+                nominal=dict(zip(PARAMETER_NAMES, np.exp(np.asarray(theta.log_f0)).tolist())),
+                fitted=errors_over(measures, fitted_rows),
+                held_out=held_out_errors(measures, batch, phases),
+                parameters=len(coordinates.names),
+                convergence=convergence,
+            )
+        )
+        thetas[name] = (chosen, theta)
+    selection = Selection([p.name for p in data.paths], fits, problem.every, problem.block)
+    for fit in ranked(selection)[: settings.per_bag]:
+        chosen, theta = thetas[fit.name]
+        for record, bag in enumerate(selection.bags):
+            coordinates = Coordinates(theta, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[fit.name]))
+            batch = problem.gated(chosen, record)
+            objective = problem.objective(coordinates, batch)
+            x, _ = minimise(objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}", stream)
+            n_fit = int(np.sum(np.asarray(batch.valid) & ~np.asarray(batch.held_out)))
+            sd = _effect_sd(problem, coordinates, objective, x, n_fit, fit.name)
+            values = problem.physical(coordinates.theta(x), fit.name)
+            fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
+    return selection
+
+
+def _effect_sd(problem: _Problem, coordinates: Coordinates, objective, x: np.ndarray, n_fit: int, name: str) -> dict[str, float]:
+    """Standard errors (physical units) of one effect's fitted parameters from the loss curvature."""
+    prior_width = problem.config.training.prior_width
+    sd, _ = standard_errors(hessian(objective, x), n_fit, coordinates.prior_sd(prior_width))
+    scales = problem.scales.params[problem.effects.names.index(name)]
+    return {n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]] for n, s in zip(coordinates.names, sd) if n.startswith(name + ".")}
+
+
+def judged(selection: Selection) -> list[Judged]:
+    """Every candidate against the baseline, lowest criterion first."""
+    base = selection.baseline
+    rows = [judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters)) for f in selection.fits[1:]]
+    return sorted(rows, key=lambda j: j.criterion)
+
+
+def ranked(selection: Selection) -> list[CandidateFit]:
+    """The candidates (not the baseline), lowest criterion first."""
+    fits = {f.name: f for f in selection.fits}
+    return [fits[j.name] for j in judged(selection)]
+
+
+def candidate_rows(selection: Selection, frols_rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """`diagnosis.json`'s verdict.candidates: the fitted candidates by criterion (their fitted values),
+    then the others in FROLS order (their linearised values), each with its FROLS ERR."""
+    fits = {f.name: f for f in selection.fits}
+    frols = {row["candidate"]: row for row in frols_rows}
+    rows = []
+    for j in judged(selection):
+        fit = fits[j.name]
+        parameters = {}
+        for k, value in fit.values.items():
+            sd = fit.sd.get(k, float("nan"))
+            parameters[k] = {
+                "value": value,
+                "std": sd,
+                "ci95": [value - 1.96 * sd, value + 1.96 * sd],
+                "unit": fit.units[k],
+                "per_bag": {bag: values[k][0] for bag, values in fit.per_bag.items()},
+                "per_bag_std": {bag: values[k][1] for bag, values in fit.per_bag.items()},
+            }
+        rows.append(
+            {
+                "candidate": j.name,
+                "fitted": True,
+                "err_percent": frols[j.name]["err_percent"] if j.name in frols else float("nan"),
+                "criterion": j.criterion,
+                "held_out_nll_fall": j.nll_fall,
+                "k_step_fall": j.k_step_fall,
+                "k_step_fall_by_phase": j.phase_k_step_fall,
+                "held_out_k_step_rmse_m": fit.held_out["all"].k_step_rmse.tolist(),
+                "parameters": parameters,
+                "nominal": fit.nominal,
+                "steps": fit.convergence.steps,
+                "converged": fit.convergence.converged,
+            }
+        )
+    fitted = {row["candidate"] for row in rows}
+    rows += [{**row, "fitted": False} for row in frols_rows if row["candidate"] not in fitted]
+    return [{**row, "rank": rank} for rank, row in enumerate(rows, start=1)]
+
+
+def fitted_verdict(frols_verdict: dict[str, Any], selection: Selection) -> dict[str, Any]:
+    """diagnose's verdict decided by the fitted candidates (`fit_candidates`, `core.selection.verdict`);
+    the FROLS ranking kept under "frols"."""
+    decided = verdict(judged(selection))
+    frols = {row["candidate"]: row for row in frols_verdict["candidates"]}
+    base = selection.baseline
+    return {
+        **frols_verdict,
+        "explained": decided["explained"],
+        "best": decided["best"],
+        "best_err_percent": frols[decided["best"]]["err_percent"] if decided["best"] in frols else float("nan"),
+        "text": decided["text"],
+        "method": "fitted",
+        "margin_to_second": decided["margin_to_second"],
+        "collinear": decided["collinear"],
+        "frols_text": frols_verdict["text"],
+        "frols": frols_verdict["candidates"],
+        "candidates": candidate_rows(selection, frols_verdict["candidates"]),
+        "held_out": {
+            "every": selection.held_out_every,
+            "block_samples": selection.held_out_block,
+            "baseline_nll": base.held_out["all"].nll,
+            "baseline_k_step_rmse_m": base.held_out["all"].k_step_rmse.tolist(),
+            "baseline_nominal": base.nominal,
+        },
+    }
+
+
+def markdown(v: dict[str, Any]) -> list[str]:
+    """The fitted candidates' table of a verdict (`fitted_verdict`), as Markdown lines."""
+    held = v["held_out"]
+    lines = [
+        f"Candidates fitted with the model's constants (ln f0, Q factors) on the samples outside the held-out blocks "
+        f"(one {held['block_samples']}-sample block in {held['every']}), judged on the held-out ones against the same "
+        f"fit without any (criterion: BIC difference, negative is better).",
+        "",
+        "| candidate | criterion | held-out NLL fall | k-step error fall | fitted value +- sd | per bag |",
+        "|---|---:|---:|---:|---|---|",
+    ]
+    for row in v["candidates"]:
+        if not row["fitted"]:
+            continue
+        values = "; ".join(f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items())
+        per_bag = "; ".join(
+            ", ".join(f"{bag} {value:.4g} +- {p['per_bag_std'][bag]:.2g}" for bag, value in p["per_bag"].items())
+            for p in row["parameters"].values()
+            if p["per_bag"]
+        )
+        lines.append(
+            f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
+            f"{100 * row['k_step_fall']:+.0f} % | {values} | {per_bag or '-'} |"
+        )
+    phases = sorted({p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index)
+    lines += ["", "Held-out k-step error fall by contact phase:", "", "| candidate | " + " | ".join(phases) + " |",
+              "|---|" + "---:|" * len(phases)]
+    for row in v["candidates"]:
+        if row["fitted"]:
+            falls = row["k_step_fall_by_phase"]
+            lines.append(f"| {row['candidate']} | " + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases) + " |")
+    return lines

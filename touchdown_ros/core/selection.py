@@ -1,0 +1,233 @@
+"""Choosing the missing effect by what fitting it achieves (issue #16).
+
+Each candidate effect is fitted with the calibrated model's constants (stage 1's coordinates:
+ln f0, the Q factors and the candidate's parameters, `core.calibration`) on the fitted samples
+of records with held-out time blocks (`core.training.hold_out`), and judged on the held-out
+samples against the same fit without any candidate (the baseline):
+
+- the fall of the mean innovation negative log-likelihood (-2 ln L per sample, `nll`);
+- the fall of the k-step prediction error (the filtered state propagated k samples, m);
+- a Bayesian information criterion on the fitted samples,
+  BIC = N_fit * mean(-2 ln L) + p ln N_fit, as a difference to the baseline's, so that a
+  candidate gains nothing from its extra parameters alone (negative: better than none).
+
+Every candidate lives in one model (`with_candidates`), switched on by its gate in the batch
+(`candidate_gates`): the gates and parameters are traced, so one compilation fits them all.
+
+Collinear candidates (two within a small criterion margin) are told apart by where they act:
+held-out errors per contact phase (`contact_phases`): a constant load acts in free flight too,
+a stiffness where the rotor is displaced, a contact effect only in contact.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import jax
+import numpy as np
+from jax import Array
+
+from touchdown_ros.core.calibration import filtered_states
+from touchdown_ros.core.diagnostics import PHASES, contact_phase, effect_regressors, k_step_predictions
+from touchdown_ros.core.effects import Effect, Effects
+from touchdown_ros.core.training import Batch, sample_errors
+from touchdown_ros.core.types import FilterNoise, Model, Rig
+
+#: Label of the fit without any candidate, the reference of every difference.
+BASELINE = "none"
+
+
+def with_candidates(effects: Effects, candidates: Sequence[Effect]) -> Effects:
+    """The model's effects followed by the candidates at their defaults (switched on by gates)."""
+    return Effects(
+        effects.effects + tuple(candidates),
+        effects.params + tuple(c.defaults() for c in candidates),
+        effects.gates + (1.0,) * len(candidates),
+    )
+
+
+def candidate_gates(model_gates: np.ndarray, count: int, chosen: int | None) -> np.ndarray:
+    """(B, E + count) gates: the model's own effects' (B, E) as they are, then candidate `chosen`
+    (0-based) on in every record and the other candidates off (None: all off, the baseline)."""
+    model_gates = np.asarray(model_gates, dtype=float).reshape(len(model_gates), -1)
+    extra = np.zeros((len(model_gates), count))
+    if chosen is not None:
+        extra[:, chosen] = 1.0
+    return np.concatenate([model_gates, extra], axis=1)
+
+
+def force_scaled(scales: Effects, names: Sequence[str], states: Array, rig: Rig, force: float) -> Effects:
+    """`scales` (`core.calibration.effect_scales`) with the named effects' parameter scales replaced
+    by the change that moves the effect's force by `force` N rms along the states (N, 7): every
+    candidate's coordinate then moves the model alike, whatever its unit (a stiffness in N/m and a
+    load in N); a parameter that moves no force there keeps its scale."""
+    params = []
+    for e, p in zip(scales.effects, scales.params):
+        if e.name not in names:
+            params.append(p)
+            continue
+        jacobian = np.asarray(effect_regressors(e, states, rig)[0])  # (N, 3, p) in parameter order
+        rms = np.sqrt(np.nanmean(np.sum(jacobian**2, axis=1), axis=0))
+        params.append({k: float(force / r) if np.isfinite(r) and r > 0.0 else p[k] for k, r in zip(e.parameters, rms)})
+    return Effects(scales.effects, tuple(params), scales.gates)
+
+
+def contact_phases(states: np.ndarray, rig: Rig) -> np.ndarray:
+    """Contact phase (`diagnostics.PHASES`: 0 free flight, 1 axial only, 2 radial only, 3 both) of
+    states (..., 7): radial contact where r > r0, axial where -(z + z0) > 0."""
+    states = np.asarray(states)
+    radial = np.hypot(states[..., 0], states[..., 1]) > rig.radial_clearance
+    axial = -(states[..., 2] + rig.axial_clearance) > 0.0
+    return contact_phase(radial, axial)
+
+
+class SampleMeasures(NamedTuple):
+    """Per-sample measures of one model on a batch."""
+
+    nll: Array  # (B, L) -2 ln L of the innovation (without constants), 0 where no sample
+    k_step_error: Array  # (B, L, 3) m, k-step predicted minus measured position (NaN where none)
+    states: Array  # (B, L, 7) filtered states
+
+
+def sample_measures(model: Model, noise: FilterNoise, h: float, batch: Batch, k: int) -> SampleMeasures:
+    """The innovation NLL, the k-step prediction error and the filtered state of every sample."""
+    states, _ = filtered_states(model, noise, h, batch)
+
+    def ahead(record_states: Array, gates: Array) -> Array:
+        gated = model._replace(effects=model.effects.with_gates(gates))
+        return k_step_predictions(gated, record_states, h, k)[:, :3]
+
+    predicted = jax.vmap(ahead)(states, batch.gates)
+    return SampleMeasures(sample_errors(model, noise, h, batch, "nll"), predicted - batch.etas, states)
+
+
+class Errors(NamedTuple):
+    """Mean errors over a set of samples."""
+
+    samples: int
+    nll: float  # mean -2 ln L per sample
+    k_step_rmse: np.ndarray  # (3,) m, per axis
+
+    @property
+    def k_step_norm(self) -> float:
+        """m, the norm over the axes of the k-step RMSE."""
+        return float(np.linalg.norm(self.k_step_rmse))
+
+
+def errors_over(measures: SampleMeasures, chosen: np.ndarray) -> Errors:
+    """Mean NLL and k-step RMSE over the samples where `chosen` (B, L) is true (NaN where none)."""
+    nll, k_error = np.asarray(measures.nll), np.asarray(measures.k_step_error)
+    rows = np.asarray(chosen, bool)
+    k_rows = rows & np.all(np.isfinite(k_error), axis=-1)
+    mean_nll = float(np.mean(nll[rows])) if rows.any() else float("nan")
+    rmse = np.sqrt(np.mean(k_error[k_rows] ** 2, axis=0)) if k_rows.any() else np.full(3, np.nan)
+    return Errors(int(rows.sum()), mean_nll, rmse)
+
+
+def held_out_errors(measures: SampleMeasures, batch: Batch, phases: np.ndarray) -> dict[str, Errors]:
+    """Errors on the held-out valid samples: "all", and per contact phase (`PHASES`)."""
+    held = np.asarray(batch.valid) & np.asarray(batch.held_out)
+    out = {"all": errors_over(measures, held)}
+    for index, name in enumerate(PHASES):
+        out[name] = errors_over(measures, held & (phases == index))
+    return out
+
+
+def information_criterion(mean_nll: float, samples: int, parameters: int) -> float:
+    """BIC of a fit: samples * mean(-2 ln L) + parameters * ln(samples)."""
+    return float(samples * mean_nll + parameters * np.log(samples))
+
+
+def fall(before: float, after: float) -> float:
+    """Relative fall of an error, 1 - after / before (0.5: halved; negative: it rose)."""
+    return float(1.0 - after / before) if before else float("nan")
+
+
+#: The best candidate must lower the held-out k-step error (norm over the axes) by at least this share.
+MIN_K_STEP_FALL = 0.1
+#: ... and must not raise it by more than this share in any contact phase: a missing effect, once
+#: added, predicts better where it acts and no worse elsewhere; a candidate that trades one phase
+#: for another compensates something else (e.g. a contact law's error) with a compromise value.
+MAX_PHASE_RISE = 0.1
+#: Criterion difference (BIC units) below which two candidates explain about equally
+#: (10: "very strong" evidence on Kass and Raftery's scale).
+COLLINEAR_MARGIN = 10.0
+
+
+class Judged(NamedTuple):
+    """One candidate's fit against the baseline's."""
+
+    name: str
+    criterion: float  # BIC difference to the baseline (negative: better)
+    nll_fall: float  # held-out mean -2 ln L per sample, baseline minus candidate
+    k_step_fall: float  # relative fall of the held-out k-step RMSE (norm over the axes)
+    phase_k_step_fall: dict[str, float]  # the same per contact phase (PHASES)
+
+
+def judge(name: str, fit: tuple[Errors, dict[str, Errors], int], baseline: tuple[Errors, dict[str, Errors], int]) -> Judged:
+    """A candidate's (fitted errors, held-out errors by phase, free parameters) against the baseline's."""
+    fitted, held, parameters = fit
+    base_fitted, base_held, base_parameters = baseline
+    n = fitted.samples
+    criterion = information_criterion(fitted.nll, n, parameters) - information_criterion(base_fitted.nll, n, base_parameters)
+    phases = {p: fall(base_held[p].k_step_norm, held[p].k_step_norm) for p in PHASES if held[p].samples and base_held[p].samples}
+    return Judged(name, criterion, base_held["all"].nll - held["all"].nll, fall(base_held["all"].k_step_norm, held["all"].k_step_norm), phases)
+
+
+def verdict(
+    judged: Sequence[Judged], min_fall: float = MIN_K_STEP_FALL, max_rise: float = MAX_PHASE_RISE, margin: float = COLLINEAR_MARGIN
+) -> dict:
+    """The missing effect: the candidate with the lowest criterion if it beats the baseline (criterion
+    < 0) and its held-out errors fall clearly (NLL lower, k-step lower by `min_fall` and in no contact
+    phase higher by more than `max_rise`); else unexplained. When the runner-up is within `margin` of it, the two are named collinear and the
+    contact phase where their held-out k-step falls differ most decides between them (e.g. free
+    flight, where a constant load acts and a contact effect does not)."""
+    order = sorted(judged, key=lambda j: j.criterion)
+    if not order:
+        return {"explained": False, "best": None, "margin_to_second": float("nan"), "collinear": None,
+                "text": "unexplained: no candidate was fitted"}
+    margin_to_second = order[1].criterion - order[0].criterion if len(order) > 1 else float("nan")
+    collinear = None
+    if margin_to_second < margin:
+        first, second = order[:2]
+        shared = [p for p in first.phase_k_step_fall if p in second.phase_k_step_fall]
+        phase = max(shared, key=lambda p: abs(first.phase_k_step_fall[p] - second.phase_k_step_fall[p]), default=None)
+        if phase is not None and second.phase_k_step_fall[phase] > first.phase_k_step_fall[phase]:
+            order[:2] = [second, first]
+        collinear = {
+            "candidates": [order[0].name, order[1].name],
+            "criterion_margin": margin_to_second,
+            "phase": phase,
+            "k_step_fall": {j.name: j.phase_k_step_fall[phase] for j in order[:2]} if phase else {},
+        }
+    best = order[0]
+    worst_phase = min(best.phase_k_step_fall, key=best.phase_k_step_fall.get, default=None)
+    worst_fall = best.phase_k_step_fall[worst_phase] if worst_phase else 0.0
+    explained = best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall and worst_fall >= -max_rise
+    if explained:
+        ahead = "" if collinear else f", the next {margin_to_second:.1f} behind"
+        text = (
+            f"missing effect: {best.name} (criterion {best.criterion:+.1f} vs none{ahead}; "
+            f"held-out k-step error -{100 * best.k_step_fall:.0f} %, NLL -{best.nll_fall:.3f} per sample)"
+        )
+    else:
+        why = (
+            f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % (it trades one phase for another)"
+            if worst_fall < -max_rise
+            else f"lowers the held-out k-step error by {100 * best.k_step_fall:.0f} % (< {100 * min_fall:.0f} %, "
+            f"or the NLL or the criterion does not fall)"
+        )
+        text = f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {why}; see the residual's signature"
+    if collinear and collinear["phase"]:
+        falls = collinear["k_step_fall"]
+        text += (
+            f"; {collinear['candidates'][1]} explains about as well (criterion margin {collinear['criterion_margin']:.1f}), "
+            f"told apart in {collinear['phase']}, where the held-out k-step error falls "
+            + " vs ".join(f"{100 * v:.0f} % ({n})" for n, v in falls.items())
+        )
+    return {
+        "explained": bool(explained),
+        "best": best.name,
+        "margin_to_second": margin_to_second,
+        "collinear": collinear,
+        "text": text,
+    }
