@@ -39,10 +39,10 @@ def test_coordinates_name_each_free_entry_in_the_flattening_order():
 
 
 def test_candidate_scales_move_the_force_by_the_given_size():
-    rig = load_config().rig
     effects = sel.with_candidates(fx.Effects(), [fx.LIBRARY["axial_load"], fx.LIBRARY["magnetic_stiffness"]])
+    model = load_config().model()._replace(effects=effects)
     states = jnp.zeros((50, 7)).at[:, 2].set(jnp.linspace(-1e-4, 1e-4, 50))
-    scaled = sel.force_scaled(effects, ["axial_load", "magnetic_stiffness"], states, rig, 2000.0)
+    scaled = sel.force_scaled(effects, ["axial_load", "magnetic_stiffness"], states, model, 2000.0)
     assert abs(scaled.params[0]["force"] - 2000.0) < 1e-9
     rms_z = float(jnp.sqrt(jnp.mean(states[:, 2] ** 2)))
     np.testing.assert_allclose(scaled.params[1]["k_axial"], 2000.0 / rms_z)

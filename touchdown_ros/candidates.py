@@ -111,7 +111,7 @@ class _Problem:
         one coordinate unit is a force of the rotor's weight)."""
         weight = self.config.rig.mass * self.config.rig.gravity
         names = [c.name for c in self.candidates]
-        self.scales = force_scaled(self.scales, names, jnp.asarray(states), self.config.rig, weight)
+        self.scales = force_scaled(self.scales, names, jnp.asarray(states), self.base, weight)
         self.start = self.start._replace(effects=apply_scales(self.effects, self.scales, inverse=True))
 
     def gated(self, chosen: int | None, record: int | None = None) -> Batch:

@@ -55,7 +55,7 @@ def candidate_gates(model_gates: np.ndarray, count: int, chosen: int | None) -> 
     return np.concatenate([model_gates, extra], axis=1)
 
 
-def force_scaled(scales: Effects, names: Sequence[str], states: Array, rig: Rig, force: float) -> Effects:
+def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Model, force: float) -> Effects:
     """`scales` (`core.calibration.effect_scales`) with the named effects' parameter scales replaced
     by the change that moves the effect's force by `force` N rms along the states (N, 7): every
     candidate's coordinate then moves the model alike, whatever its unit (a stiffness in N/m and a
@@ -65,7 +65,7 @@ def force_scaled(scales: Effects, names: Sequence[str], states: Array, rig: Rig,
         if e.name not in names:
             params.append(p)
             continue
-        jacobian = np.asarray(effect_regressors(e, states, rig)[0])  # (N, 3, p) in parameter order
+        jacobian = np.asarray(effect_regressors(e, states, model)[0])  # (N, 3, p) in parameter order
         rms = np.sqrt(np.nanmean(np.sum(jacobian**2, axis=1), axis=0))
         params.append({k: float(force / r) if np.isfinite(r) and r > 0.0 else p[k] for k, r in zip(e.parameters, rms)})
     return Effects(scales.effects, tuple(params), scales.gates)
