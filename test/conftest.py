@@ -1,10 +1,12 @@
-"""What the tests share: simulated drop-test bags (the simulator's Table 1 experiments, truth included)."""
+"""What the tests share: simulated drop-test bags (the simulator's Table 1 experiments, truth included),
+and library effects by name."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 
+from touchdown_ros.core import effects as fx
 from touchdown_ros.io.config import Config, load_config
 from touchdown_ros.offline import write_drop_bag
 from touchdown_ros.sim.campaign import CAMPAIGN
@@ -20,6 +22,14 @@ def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config |
     record = simulate_drop(config, CAMPAIGN[experiment - 1], seed=seed, params=params)
     write_drop_bag(record, config, path)
     return record
+
+
+def library_effects(names, values=None) -> fx.Effects:
+    """Effects of the library (or dotted paths) by name, at their defaults overridden by `values`."""
+    chosen = tuple(fx.resolve(n) for n in names)
+    values = values or {}
+    return fx.Effects(chosen, tuple({k: float(values.get(e.name, {}).get(k, v)) for k, v in e.defaults().items()}
+                                    for e in chosen))
 
 
 @pytest.fixture(scope="session")

@@ -25,12 +25,7 @@ from touchdown_ros.offline import estimate_record
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.simulator import simulate_drop
 
-
-def _effects(names, values=None) -> fx.Effects:
-    """Library effects by name, at their defaults overridden by `values`."""
-    chosen = tuple(fx.resolve(n) for n in names)
-    values = values or {}
-    return fx.Effects(chosen, tuple({k: float(values.get(e.name, {}).get(k, v)) for k, v in e.defaults().items()} for e in chosen))
+from conftest import library_effects
 
 
 GAIN, OFFSET = 1.05, 20e-6  # the z sensor of the simulated drops: 1, m
@@ -50,7 +45,7 @@ _scaled_z.kind = "measurement"
 
 def test_sensor_effects_change_h_not_phi():
     model = load_config().model()
-    sensed = model._replace(effects=_effects(["sensor_gain_z", "sensor_offset_x"],
+    sensed = model._replace(effects=library_effects(["sensor_gain_z", "sensor_offset_x"],
                                              {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_x": {"offset": OFFSET}}))
     assert fx.LIBRARY["sensor_gain_y"].parameters["gain"][1] == "1"
     assert fx.LIBRARY["sensor_offset_y"].parameters["offset"][1] == "m"
@@ -76,7 +71,7 @@ def test_the_general_update_equals_the_papers_h_when_no_effect_acts():
 
     config = load_config()
     model, noise, h = config.model(), config.noise, config.sample_period
-    identity = model._replace(effects=_effects(["sensor_gain_z", "sensor_offset_z"]))
+    identity = model._replace(effects=library_effects(["sensor_gain_z", "sensor_offset_z"]))
     etas = jnp.asarray(np.asarray(XI[:3]) + 2e-6 * np.random.default_rng(0).standard_normal((200, 3)))
     initial = Belief(XI.at[4:].set(0.0), jnp.diag(noise.initial))
     paper = jax.jit(lambda e: ekf(model, noise, h, initial, e))(etas)
@@ -173,7 +168,7 @@ def test_training_loss_is_least_at_the_true_sensor_error():
     sensor effects at the truth than at gain 1, offset 0, and their gradient points to the truth."""
     from test_streaming import CONFIG
 
-    config = dataclasses.replace(CONFIG, effects=_effects(SENSOR["effects.active"]))
+    config = dataclasses.replace(CONFIG, effects=library_effects(SENSOR["effects.active"]))
     model, noise, h = config.model(), config.noise, config.sample_period
     _, measured = _sensed_model_drop(config)
     onset = int(round(0.02 / h))
@@ -196,7 +191,7 @@ def test_live_chunk_filter_equals_the_offline_filter_with_a_measurement_effect()
     from touchdown_ros.core.streaming import StreamingEstimator, estimate_stream, make_chunk_filter
 
     values = {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_z": {"offset": OFFSET}}
-    sensor = _effects(SENSOR["effects.active"], values)
+    sensor = library_effects(SENSOR["effects.active"], values)
     config = dataclasses.replace(CONFIG, effects=sensor)
     stamps, measured = _sensed_model_drop(config)
     reference = offline(stamps, measured, config)

@@ -8,9 +8,11 @@ from touchdown_ros.core.calibration import Coordinates, Stage1, stage1_flags
 from touchdown_ros.core.types import PARAMETER_NAMES
 from touchdown_ros.io.config import load_config
 
+from conftest import library_effects
+
 
 def test_candidates_join_the_model_switched_by_their_gates():
-    own = fx.build(["axial_load"])
+    own = library_effects(["axial_load"])
     effects = sel.with_candidates(own, [fx.LIBRARY["magnetic_stiffness"], fx.LIBRARY["radial_load"]])
     assert effects.names == ("axial_load", "magnetic_stiffness", "radial_load")
     gates = sel.candidate_gates(np.array([[1.0], [0.0]]), 2, 1)
@@ -25,7 +27,7 @@ def test_candidates_join_the_model_switched_by_their_gates():
 
 
 def test_coordinates_name_each_free_entry_in_the_flattening_order():
-    effects = fx.build(["magnetic_stiffness", "axial_load"], {"magnetic_stiffness": {"k_radial": 3.0, "k_axial": 4.0}})
+    effects = library_effects(["magnetic_stiffness", "axial_load"], {"magnetic_stiffness": {"k_radial": 3.0, "k_axial": 4.0}})
     start = Stage1(jnp.arange(6.0), jnp.array([10.0, 11.0]), effects)
     coordinates = Coordinates(start, stage1_flags(effects, True, fitted_effects=["magnetic_stiffness"]))
     assert coordinates.names == [*PARAMETER_NAMES, "q_radial", "q_axial", "magnetic_stiffness.k_axial", "magnetic_stiffness.k_radial"]
