@@ -200,16 +200,6 @@ def loss_and_held_out(
     return fitted + lam * rkhs_distance(model.kernel, coeffs), held_out
 
 
-def loss(
-    coeffs: Coefficients,
-    model: Model,
-    noise: FilterNoise,
-    h: float,
-    batch: Batch,
-    lam: float,
-    effects: Effects | None = None,
-    mesh: Mesh | None = None,
-    kind: str = "one_step",
-) -> Array:
-    """Eq. 18 (`loss_and_held_out` without the held-out error)."""
-    return loss_and_held_out(coeffs, model, noise, h, batch, lam, effects, mesh, kind)[0]
+def loss(*args, **kwargs) -> Array:
+    """Eq. 18 alone: the first value of `loss_and_held_out`, which takes the same arguments."""
+    return loss_and_held_out(*args, **kwargs)[0]
