@@ -146,7 +146,7 @@ def _deformations(config: Config, state: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _error_metrics(measured, one_step, k_step, force_error, phase, impact) -> dict[str, Any]:
-    e1, ek = one_step - measured, k_step - measured
+    ek = k_step - measured
     by_phase, counts = dg.rms_by_label(ek, phase, range(4))
     force_phase = dg.rms_by_label(force_error, phase, range(4))[0] if force_error is not None else None
     impacts = [i for i in range(1, min(int(impact.max()) if impact.size else 0, 12) + 1)]
@@ -563,7 +563,7 @@ def markdown(document: dict[str, Any]) -> str:
     models = document["models"]
     labels = [m["label"] for m in models]
     s = document["settings"]
-    lines = [f"# touchdown diagnose\n", f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n"]
+    lines = ["# touchdown diagnose\n", f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n"]
     lines += [f"- **{m['label']}**: {m['coefficients']}; effects {m['effects'] or 'none'}" for m in models]
     lines.append("")
 

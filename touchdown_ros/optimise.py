@@ -63,6 +63,8 @@ def require_convergence(convergence: Convergence, stage: str, paths: Sequence[Pa
 
 #: Loss reported for a trial point where the filter diverged (the optimiser steps back from it).
 DIVERGED_LOSS = 1.0e30
+
+
 def minimise(
     value_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]],
     theta0: np.ndarray,

@@ -182,7 +182,7 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
     `lax.scan` (eq. 16b-e are one recursion): the same arithmetic in the same order as
     writing them out, with a quarter of the program to compile.
     """
-    I = jnp.eye(xi.shape[0], dtype=xi.dtype)
+    I = jnp.eye(xi.shape[0], dtype=xi.dtype)  # noqa: E741 (the identity, as in the paper)
 
     def stage(carry, shift_and_weight):
         k, dk, total, dtotal = carry

@@ -37,6 +37,7 @@ from touchdown_ros.ros.runtime import make_executor, qos, spin
 
 EXIT_OK, EXIT_USAGE, EXIT_BAD_INPUT, EXIT_INCOMPLETE = 0, 2, 3, 4
 
+
 @dataclass
 class _Track:
     """Messages recorded on one topic."""

@@ -32,8 +32,6 @@ def qos(reliability: str, depth: int) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=policy)
 
 
-
-
 class DrainedSubscription:
     """A raw subscription that no executor serves: its owner takes the waiting messages itself.
 

@@ -112,4 +112,3 @@ def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray) -> np.ndarray:
     buffer[size, PRIOR] = prior
     buffer[size, COUNT] = len(etas)
     return buffer
-
