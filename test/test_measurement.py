@@ -45,8 +45,8 @@ _scaled_z.kind = "measurement"
 
 def test_sensor_effects_change_h_not_phi():
     model = load_config().model()
-    sensed = model._replace(effects=library_effects(["sensor_gain_z", "sensor_offset_x"],
-                                             {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_x": {"offset": OFFSET}}))
+    values = {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_x": {"offset": OFFSET}}
+    sensed = model._replace(effects=library_effects(["sensor_gain_z", "sensor_offset_x"], values))
     assert fx.LIBRARY["sensor_gain_y"].parameters["gain"][1] == "1"
     assert fx.LIBRARY["sensor_offset_y"].parameters["offset"][1] == "m"
     assert all(fx.LIBRARY[f"sensor_{k}_{a}"].kind == fx.MEASUREMENT for k in ("gain", "offset") for a in "xyz")

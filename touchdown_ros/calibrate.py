@@ -179,4 +179,3 @@ def spread(count: int, most: int) -> list[int]:
     if most < 1 or count <= most:
         return list(range(count))
     return sorted({int(i) for i in np.round(np.linspace(0, count - 1, most))})
-
