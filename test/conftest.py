@@ -26,10 +26,7 @@ def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config |
 
 def library_effects(names, values=None) -> fx.Effects:
     """Effects of the library (or dotted paths) by name, at their defaults overridden by `values`."""
-    chosen = tuple(fx.resolve(n) for n in names)
-    values = values or {}
-    return fx.Effects(chosen, tuple({k: float(values.get(e.name, {}).get(k, v)) for k, v in e.defaults().items()}
-                                    for e in chosen))
+    return fx.Effects(tuple(fx.resolve(n) for n in names)).with_values(values or {})
 
 
 @pytest.fixture(scope="session")

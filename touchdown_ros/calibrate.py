@@ -124,10 +124,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         return guess, objective, coordinates.initial(log_f0=guess_log)
 
     # Screen every candidate law to a loose tolerance on a few bags, then refine the best on all.
-    screening = spread(len(data.records), settings.screening_bags)
-    screen_batch = batch if len(screening) == len(data.records) else training_batch(config, data.subset(screening), effects)
+    screen_data = data.subset(spread(len(data.records), settings.screening_bags))
+    screen_batch = batch if len(screen_data.paths) == len(data.paths) else training_batch(config, screen_data, effects)
     if screen_batch is not batch:
-        print(f"contact laws screened on {len(screening)} of the {len(data.records)} bags", file=stream)
+        print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
     screened = []
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, screen_batch)
@@ -137,7 +137,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(coordinates.theta(x0), law_model(law), noise, scales)
-            paths = [data.paths[i] for i in screening]
+            paths = screen_data.paths
             losses = _per_bag_losses(model0, noise0, h, screen_batch, kind)[: len(paths)]
             bad = [str(p) for p, v in zip(paths, losses) if not np.isfinite(v)] or [str(p) for p in paths]
             raise DivergedError(

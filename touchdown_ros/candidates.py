@@ -97,9 +97,8 @@ class _Problem:
         self.scales = effect_scales(self.effects)
         self.guess = jnp.asarray(log_nominal(config.nominal))
         self.mesh = record_mesh()
-        settings = config.training
-        self.block = max(1, round(settings.held_out_block / config.sample_period))
-        self.every = settings.held_out_every
+        self.block = config.held_out_block_samples()
+        self.every = config.training.held_out_every
         gates = [fx.gates_for(model.effects, c) for c in (data.conditions or ({},) * len(data.records))]
         batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=gates)
         self.batch = hold_out(batch, self.block, self.every)

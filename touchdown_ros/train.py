@@ -89,8 +89,8 @@ def fit(
         initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
     scales = effect_scales(initial.effects)
     settings = config.training
-    block = max(1, round(settings.held_out_block / config.sample_period))
-    batch = hold_out(training_batch(config, data, initial.effects, length), block, settings.held_out_every)
+    batch = hold_out(training_batch(config, data, initial.effects, length), config.held_out_block_samples(),
+                     settings.held_out_every)
     note_ungated(initial.effects, batch, stream)
     objective = objective or make_objective(config, regularisation)
     theta0, unravel = ravel_pytree(Trainable(initial.coeffs, apply_scales(initial.effects, scales, inverse=True)))

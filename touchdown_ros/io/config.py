@@ -152,6 +152,10 @@ class Config:
         """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
         return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
 
+    def held_out_block_samples(self) -> int:
+        """training.held_out_block (s) as a whole number of samples, at least one."""
+        return max(1, round(self.training.held_out_block / self.sample_period))
+
     def drop_detector(self) -> DropDetector:
         """The drop onset rule of `drop_detection.*` on this rig's sample grid."""
         return DropDetector(self.sample_period, self.drop.threshold, self.drop.levitated_window, self.rig.gravity)
