@@ -30,9 +30,9 @@ import numpy as np
 
 from touchdown_ros.core.metrics import relative_peak_error
 from touchdown_ros.io.coefficients import load_coefficients
-from touchdown_ros.offline import estimate_bag, estimator_for
+from touchdown_ros.workflows.offline import estimate_bag, estimator_for
 from touchdown_ros.sim.family import VARIANTS, variant, variant_config, write_variant_bags
-from touchdown_ros.train import train
+from touchdown_ros.workflows.train import train
 
 Z95 = 1.959964
 

@@ -34,7 +34,7 @@ def simulate_campaign(out: Path) -> list[Path]:
 
 def run_ours(bags: list[Path], steps: int) -> dict:
     from touchdown_ros.io.config import load_config
-    from touchdown_ros.train import train
+    from touchdown_ros.workflows.train import train
 
     start = time.perf_counter()
     config = load_config()
@@ -59,7 +59,7 @@ def run_baseline(bags: list[Path], target: float, budget: float) -> dict:
     from touchdown_ros.core.training import make_batch, prediction_errors
     from touchdown_ros.core.types import Coefficients
     from touchdown_ros.io.config import load_config
-    from touchdown_ros.train import load_training_data
+    from touchdown_ros.workflows.train import load_training_data
 
     start = time.perf_counter()
     config = load_config()
@@ -127,7 +127,7 @@ def run_numpy_evaluation(bags: list[Path], share: int) -> dict:
     from numpy_ekf import filterpy_innovations  # bench/numpy_ekf.py
     from touchdown_ros.core.training import make_batch, prediction_errors
     from touchdown_ros.io.config import load_config
-    from touchdown_ros.train import load_training_data
+    from touchdown_ros.workflows.train import load_training_data
 
     config = load_config()
     data = load_training_data(config, bags)

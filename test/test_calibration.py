@@ -37,7 +37,7 @@ def test_sensor_noise_from_levitated_samples_ignores_the_orbit():
 
 
 def test_laws_are_screened_on_bags_spread_over_the_list():
-    from touchdown_ros.calibrate import spread
+    from touchdown_ros.workflows.calibrate import spread
 
     assert spread(21, 6) == [0, 4, 8, 12, 16, 20]
     assert spread(3, 6) == [0, 1, 2] and spread(21, 0) == list(range(21))

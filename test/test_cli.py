@@ -40,7 +40,7 @@ def filtered_dir(drop_bags, tmp_path_factory):
 @pytest.fixture(scope="module")
 def exp_11_estimate(drop_bags):
     """Filter and smoother of exp_11 computed here, as `touchdown estimate` computes them."""
-    from touchdown_ros.offline import estimate_bag, estimator_for
+    from touchdown_ros.workflows.offline import estimate_bag, estimator_for
 
     return estimate_bag(CONFIG, drop_bags / "exp_11", estimator_for(CONFIG))
 
@@ -141,7 +141,7 @@ def test_estimate_recovers_velocity_close_to_truth_from_the_guess(drop_bags):
     """Velocity from displacements needs little of the model: the constant model at the YAML's
     guess already gets it within 10 % of the peak speed. Its forces are only as good as the guess
     (56 % off here); forces after `touchdown train` are checked in test_calibration."""
-    from touchdown_ros.offline import estimate_bag, estimator_for
+    from touchdown_ros.workflows.offline import estimate_bag, estimator_for
 
     result = estimate_bag(CONFIG, drop_bags / "exp_01", estimator_for(CONFIG))
     truth = result.summary["truth"]

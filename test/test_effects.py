@@ -55,7 +55,7 @@ from touchdown_ros.io.coefficients import (  # noqa: E402
     save_coefficients,
 )
 from touchdown_ros.io.config import ConfigError  # noqa: E402
-from touchdown_ros.train import Trainable, TrainingData, fit  # noqa: E402
+from touchdown_ros.workflows.train import Trainable, TrainingData, fit  # noqa: E402
 
 LOADED = {"effects.active": ["axial_load"], "effects.axial_load.force": 1500.0}
 

@@ -21,7 +21,7 @@ from touchdown_ros.core.input_policy import InputPolicy, split_record
 from touchdown_ros.core.training import loss, make_batch
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients
 from touchdown_ros.io.config import load_config
-from touchdown_ros.offline import estimate_record
+from touchdown_ros.workflows.offline import estimate_record
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.simulator import simulate_drop
 

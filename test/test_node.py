@@ -32,7 +32,7 @@ from touchdown_ros.io import cdr
 from touchdown_ros.io.bags import TopicSeries, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
-from touchdown_ros.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
+from touchdown_ros.workflows.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
 from touchdown_ros.ros import messages
 from touchdown_ros.ros.health import LatencyHistogram
 from touchdown_ros.ros.replay import pace

@@ -64,7 +64,7 @@ def model_drop_record(config=CONFIG, seed=0, levitated=0.02, duration=0.15, subs
 def offline(stamps, measured, config=CONFIG):
     """The offline estimate of a record, as `estimate_bag` computes it (the input policy's segments)."""
     from touchdown_ros.core.input_policy import InputPolicy, split_record
-    from touchdown_ros.offline import estimate_record
+    from touchdown_ros.workflows.offline import estimate_record
 
     record = split_record(stamps, measured, InputPolicy.from_config(config))
     estimator = make_estimator(config.model(), config.noise, config.sample_period)

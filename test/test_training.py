@@ -7,7 +7,7 @@ from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.training import loss, make_batch
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
-from touchdown_ros.train import TrainingData, fit
+from touchdown_ros.workflows.train import TrainingData, fit
 
 CONFIG = load_config()
 H = CONFIG.sample_period
@@ -122,7 +122,7 @@ def test_minimise_keeps_the_step_with_the_lowest_held_out_loss_and_stops_on_pati
 
     from scipy.optimize import rosen, rosen_der
 
-    from touchdown_ros.optimise import minimise
+    from touchdown_ros.workflows.optimise import minimise
 
     start = np.array([-1.2, 1.0, -0.5, 0.8])
 

@@ -13,8 +13,8 @@ from touchdown_ros.core import xla
 from touchdown_ros.io.bags import BagError
 from touchdown_ros.io.coefficients import CoefficientFileError
 from touchdown_ros.io.config import ConfigError, load_config
-from touchdown_ros.outputs import OutputError, OutputGuard, check_writable
-from touchdown_ros.progress import progress
+from touchdown_ros.workflows.outputs import OutputError, OutputGuard, check_writable
+from touchdown_ros.workflows.progress import progress
 
 EXIT_USAGE = 2  # wrong command line (argparse)
 EXIT_BAD_INPUT = 3  # a bag, rig YAML, coefficient file or argument is refused (docs/input_policy.md)
@@ -56,7 +56,7 @@ def _refuse_existing(path: Path, overwrite: bool) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from touchdown_ros.offline import write_drop_bag
+    from touchdown_ros.workflows.offline import write_drop_bag
     from touchdown_ros.sim.campaign import CAMPAIGN
     from touchdown_ros.sim.simulator import simulate_drop
 
@@ -103,8 +103,8 @@ def _simulate_variant(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from touchdown_ros.offline import FILTERED, SMOOTHED, check_bag, estimate_bag, estimator_for, write_estimate_bag
-    from touchdown_ros.report import plot_estimate, write_summaries
+    from touchdown_ros.workflows.offline import FILTERED, SMOOTHED, check_bag, estimate_bag, estimator_for, write_estimate_bag
+    from touchdown_ros.workflows.report import plot_estimate, write_summaries
 
     config = _config(args)
     coeffs = effects = None
@@ -141,9 +141,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from touchdown_ros.train import train
+    from touchdown_ros.workflows.train import train
 
-    from touchdown_ros.offline import check_training_bag
+    from touchdown_ros.workflows.offline import check_training_bag
 
     config = _config(args)
     if args.out.exists() and not (args.overwrite or args.resume):
@@ -191,10 +191,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from touchdown_ros.evaluate import compare, cross_validate
+    from touchdown_ros.workflows.evaluate import compare, cross_validate
     from touchdown_ros.io.coefficients import load_coefficients
-    from touchdown_ros.offline import check_training_bag
-    from touchdown_ros.train import Trainable
+    from touchdown_ros.workflows.offline import check_training_bag
+    from touchdown_ros.workflows.train import Trainable
 
     config = _config(args)
     full = load_coefficients(args.coeffs, config)
@@ -219,8 +219,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def _write_evaluation(args: argparse.Namespace, comparisons, config, full) -> None:
     import json
 
-    from touchdown_ros.evaluate import write_tables
-    from touchdown_ros.report import plot_evaluation
+    from touchdown_ros.workflows.evaluate import write_tables
+    from touchdown_ros.workflows.report import plot_evaluation
 
     args.out.mkdir(parents=True, exist_ok=True)
     aggregate = write_tables(comparisons, args.out, coefficients=str(args.coeffs), cross_validated=not args.no_cv)
@@ -241,13 +241,13 @@ def _write_evaluation(args: argparse.Namespace, comparisons, config, full) -> No
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from touchdown_ros.diagnose import Settings, run
+    from touchdown_ros.workflows.diagnose import Settings, run
 
     config = _config(args)
     settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0, fitted=args.fit)
     if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100 or args.fit < 0:
         raise ValueError("--k must be >= 1, --force-walk > 0, --threshold in (0, 100) and --fit >= 0")
-    from touchdown_ros.offline import check_bag
+    from touchdown_ros.workflows.offline import check_bag
 
     check_writable(args.out, directory=True)
     for bag in args.bags:  # every bag is checked before the work

@@ -271,7 +271,7 @@ def write_variant_bags(
 ) -> list[Path]:
     """Simulate the variant's drops into bags `<variant>_NN` in out_dir, with the variant's `rig.yaml`
     next to them (what the user hands to `touchdown train --config`); returns the bag paths."""
-    from touchdown_ros.offline import write_drop_bag  # the bag writer (rosbag2 MCAP), not physics
+    from touchdown_ros.workflows.offline import write_drop_bag  # the bag writer (rosbag2 MCAP), not physics
 
     out_dir = Path(out_dir)
     chosen = _numbers(v, n_drops, numbers)

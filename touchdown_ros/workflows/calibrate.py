@@ -30,8 +30,8 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
-from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, DivergedError, hessian, minimise, require_convergence
-from touchdown_ros.training_data import TrainingData, note_ungated, record_mesh, training_batch
+from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, hessian, minimise, require_convergence
+from touchdown_ros.workflows.training_data import TrainingData, note_ungated, record_mesh, training_batch
 
 #: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
 SCREEN_TOLERANCE = 1.0e-4

@@ -41,8 +41,8 @@ from touchdown_ros.core.selection import (
 from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
-from touchdown_ros.optimise import Convergence, hessian, minimise
-from touchdown_ros.training_data import TrainingData, place, record_mesh
+from touchdown_ros.workflows.optimise import Convergence, hessian, minimise
+from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,8 @@ from touchdown_ros.core.metrics import rmse
 from touchdown_ros.core.types import Model
 from touchdown_ros.io.bags import read_conditions
 from touchdown_ros.io.config import Config
-from touchdown_ros.offline import BagEstimate, bag_effects, estimate_bag, estimator_for
-from touchdown_ros.progress import progress
+from touchdown_ros.workflows.offline import BagEstimate, bag_effects, estimate_bag, estimator_for
+from touchdown_ros.workflows.progress import progress
 
 AXES = ("x", "y", "z")
 
@@ -411,8 +411,8 @@ def diagnose(
         ),
     }
     if settings.fitted:
-        from touchdown_ros.candidates import FitSettings, fit_candidates, fitted_verdict
-        from touchdown_ros.training_data import load_training_data
+        from touchdown_ros.workflows.candidates import FitSettings, fit_candidates, fitted_verdict
+        from touchdown_ros.workflows.training_data import load_training_data
 
         print(f"[diagnose {label}] fitting the {settings.fitted} best candidates (held-out blocks)", file=stream, flush=True)
         names = [row["candidate"] for row in rows[: settings.fitted]]
@@ -508,7 +508,7 @@ def comparison(before: Diagnosis, after: Diagnosis) -> dict[str, Any]:
 
 def write_outputs(diagnoses: Sequence[Diagnosis], config: Config, out: Path, settings: Settings) -> dict[str, Any]:
     """diagnosis.json, diagnosis.md, errors.csv, ranking.csv and the figures in out."""
-    from touchdown_ros.report import plot_diagnosis
+    from touchdown_ros.workflows.report import plot_diagnosis
 
     out.mkdir(parents=True, exist_ok=True)
     document: dict[str, Any] = {
@@ -656,7 +656,7 @@ def markdown(document: dict[str, Any]) -> str:
             "",
         ]
         if "frols" in v:
-            from touchdown_ros.candidates import markdown as fitted_markdown
+            from touchdown_ros.workflows.candidates import markdown as fitted_markdown
 
             lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
         lines += [

@@ -12,9 +12,9 @@ import numpy as np
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.metrics import peak_errors_per_impact, relative_peak_error, rmse
 from touchdown_ros.io.config import Config
-from touchdown_ros.offline import BagEstimate, estimate_bag, estimator_for
-from touchdown_ros.progress import progress
-from touchdown_ros.train import Trainable, fit, load_training_data, make_objective
+from touchdown_ros.workflows.offline import BagEstimate, estimate_bag, estimator_for
+from touchdown_ros.workflows.progress import progress
+from touchdown_ros.workflows.train import Trainable, fit, load_training_data, make_objective
 
 #: Force above which a sample counts as part of an impact, N (about a third of the rotor weight).
 IMPACT_THRESHOLD = 800.0

@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from touchdown_ros.core.estimate import force_std  # noqa: E402
-from touchdown_ros.offline import BagEstimate, radial_force_std  # noqa: E402
+from touchdown_ros.workflows.offline import BagEstimate, radial_force_std  # noqa: E402
 
 AXES = ("x", "y", "z")
 
@@ -205,7 +205,7 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
         written.append(_save(fig, out / "fig6_force.png"))
 
     from touchdown_ros.core.metrics import impacts
-    from touchdown_ros.evaluate import IMPACT_THRESHOLD
+    from touchdown_ros.workflows.evaluate import IMPACT_THRESHOLD
 
     for name, pick, figure in (
         ("axial", lambda f: f[:, 2], "fig7_axial_peaks.png"),

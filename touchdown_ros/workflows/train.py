@@ -12,15 +12,15 @@ import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from touchdown_ros.calibrate import Calibration, calibrate
+from touchdown_ros.workflows.calibrate import Calibration, calibrate
 from touchdown_ros.core.calibration import apply_scales, contact_samples, effect_scales, filtered_states, kernel_from_data
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
-from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
-from touchdown_ros.training_data import (  # noqa: F401  (TrainingData, load_training_data: the trainer's API)
+from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
+from touchdown_ros.workflows.training_data import (  # noqa: F401  (TrainingData, load_training_data: the trainer's API)
     TrainingData,
     load_training_data,
     note_ungated,

@@ -16,7 +16,7 @@ from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.training import RECORDS, Batch, make_batch, pad_records
 from touchdown_ros.io.bags import read_conditions, read_displacement
 from touchdown_ros.io.config import Config
-from touchdown_ros.offline import NoDropError
+from touchdown_ros.workflows.offline import NoDropError
 
 
 @dataclass(frozen=True)
