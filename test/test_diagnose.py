@@ -19,7 +19,10 @@ import yaml
 from conftest import write_simulated_bag
 
 from touchdown_ros.cli import main
-from touchdown_ros.core import diagnostics as dg
+from touchdown_ros.core.diagnostics.breakdown import contact_phase
+from touchdown_ros.core.diagnostics.frols import frols
+from touchdown_ros.core.diagnostics.prediction import fit_percent
+from touchdown_ros.core.diagnostics.residuals import cross_correlation, whiteness
 from touchdown_ros.core.impacts import impact_numbers
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import load_config
@@ -242,9 +245,9 @@ def test_residual_tests_see_white_and_coloured_sequences():
     rng = np.random.default_rng(0)
     white = rng.standard_normal(4000)
     coloured = np.convolve(white, np.ones(10) / 10, mode="same")
-    assert dg.whiteness(white, 50)["outside_share"] < 0.05
-    assert dg.whiteness(coloured, 50)["outside_share"] > 0.1
-    lags, r, band = dg.cross_correlation(np.roll(white, 3), white, 10)
+    assert whiteness(white, 50)["outside_share"] < 0.05
+    assert whiteness(coloured, 50)["outside_share"] > 0.1
+    lags, r, band = cross_correlation(np.roll(white, 3), white, 10)
     assert lags[np.argmax(r)] == 3 and r.max() > 0.9 and band < 0.05
 
 
@@ -254,17 +257,17 @@ def test_frols_finds_the_true_block_and_its_value_despite_forced_terms():
     forced = rng.standard_normal((n, 4))
     blocks = {"a": rng.standard_normal((n, 1)), "b": rng.standard_normal((n, 2)), "c": rng.standard_normal((n, 1))}
     y = forced @ np.array([1.0, -2.0, 0.5, 3.0]) + 2.5 * blocks["b"][:, 1] + 0.1 * rng.standard_normal(n)
-    ranking = dg.frols(y, blocks, forced)
+    ranking = frols(y, blocks, forced)
     best = ranking.candidates[0]
     assert best.name == "b" and best.err > 0.99
     np.testing.assert_allclose(best.values, [0.0, 2.5], atol=0.02)
     assert ranking.forced_err > 0.5 and ranking.order[0][0] == "b"
-    assert dg.fit_percent(y[:, None], y[:, None])[0] == 100.0
+    assert fit_percent(y[:, None], y[:, None])[0] == 100.0
 
 
 def test_phases_and_impact_numbers():
     radial = np.array([0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1], bool)
     axial = np.array([0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], bool)
-    np.testing.assert_array_equal(dg.contact_phase(radial, axial)[:5], [0, 1, 3, 2, 0])
+    np.testing.assert_array_equal(contact_phase(radial, axial)[:5], [0, 1, 3, 2, 0])
     numbers = impact_numbers(radial | axial, merge_gap=5)
     assert numbers[0] == 0 and numbers[2] == 1 and numbers[-1] == 2

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from touchdown_ros.core import diagnostics as dg
+from touchdown_ros.core.diagnostics.regressors import effect_regressors
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import measurement, phi
 from touchdown_ros.core.ekf import Belief, ekf, model_measurement, position, update, with_jacobian
@@ -97,15 +97,15 @@ def test_measurement_regressor_is_the_force_it_stands_for():
     for the force (g - 1) m zddot = -(g - 1) m g_0, a z offset for none."""
     model = load_config().model()
     free = jnp.array([[0.0, 0.0, 0.0, 0.3, 0.0, 0.0, -0.1], [1e-5, 2e-5, -5e-5, 2.0, 0.01, 0.0, 0.2]])
-    J, f0 = dg.effect_regressors(fx.LIBRARY["sensor_gain_z"], free, model)
+    J, f0 = effect_regressors(fx.LIBRARY["sensor_gain_z"], free, model)
     np.testing.assert_allclose(J[:, 2, 0], -model.rig.mass * model.rig.gravity, rtol=1e-12)
     np.testing.assert_array_equal(J[:, :2], 0.0)
     np.testing.assert_array_equal(f0, 0.0)
-    J, _ = dg.effect_regressors(fx.LIBRARY["sensor_offset_z"], free, model)
+    J, _ = effect_regressors(fx.LIBRARY["sensor_offset_z"], free, model)
     np.testing.assert_array_equal(J, 0.0)
     # in axial contact the offset stands for the contact stiffness times it
     contact = jnp.array([[0.0, 0.0, -model.rig.axial_clearance - 1e-6, 0.3, 0.0, 0.0, 0.0]])
-    J, _ = dg.effect_regressors(fx.LIBRARY["sensor_offset_z"], contact, model)
+    J, _ = effect_regressors(fx.LIBRARY["sensor_offset_z"], contact, model)
     np.testing.assert_allclose(J[0, 2, 0], model.nominal.k_Z, rtol=1e-9)
 
 

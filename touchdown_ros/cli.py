@@ -104,7 +104,7 @@ def _simulate_variant(args: argparse.Namespace) -> int:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from touchdown_ros.workflows.offline import FILTERED, SMOOTHED, check_bag, estimate_bag, estimator_for, write_estimate_bag
-    from touchdown_ros.workflows.report import plot_estimate, write_summaries
+    from touchdown_ros.workflows.report.estimate import plot_estimate, write_summaries
 
     config = _config(args)
     coeffs = effects = None
@@ -217,27 +217,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _write_evaluation(args: argparse.Namespace, comparisons, config, full) -> None:
-    import json
+    from touchdown_ros.workflows.report.evaluation import write_evaluation
 
-    from touchdown_ros.workflows.evaluate import write_tables
-    from touchdown_ros.workflows.report import plot_evaluation
-
-    args.out.mkdir(parents=True, exist_ok=True)
-    aggregate = write_tables(comparisons, args.out, coefficients=str(args.coeffs), cross_validated=not args.no_cv)
-    names = [b.name for b in args.bags]
-    example = names.index(args.example) if args.example in names else 0
-    plot_evaluation(comparisons, config, full.coeffs, args.out / "figures", example)
-    (args.out / "evaluation.json").write_text(
-        json.dumps(
-            {
-                "cross_validated": not args.no_cv,
-                "coefficients": str(args.coeffs),
-                "aggregate": aggregate,
-                "bags": {c.path.name: c.metrics for c in comparisons},
-            },
-            indent=2,
-        )
-    )
+    write_evaluation(comparisons, config, full.coeffs, args.out, args.coeffs, not args.no_cv, args.example)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:

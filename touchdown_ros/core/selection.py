@@ -27,7 +27,9 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.calibration import filtered_states
-from touchdown_ros.core.diagnostics import PHASES, contact_phase, effect_regressors, k_step_predictions
+from touchdown_ros.core.diagnostics.breakdown import PHASES, contact_phase, deformations
+from touchdown_ros.core.diagnostics.prediction import k_step_predictions
+from touchdown_ros.core.diagnostics.regressors import effect_regressors
 from touchdown_ros.core.effects import Effect, Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import FilterNoise, Model, Rig
@@ -74,10 +76,8 @@ def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Mo
 def contact_phases(states: np.ndarray, rig: Rig) -> np.ndarray:
     """Contact phase (`diagnostics.PHASES`: 0 free flight, 1 axial only, 2 radial only, 3 both) of
     states (..., 7): radial contact where r > r0, axial where -(z + z0) > 0."""
-    states = np.asarray(states)
-    radial = np.hypot(states[..., 0], states[..., 1]) > rig.radial_clearance
-    axial = -(states[..., 2] + rig.axial_clearance) > 0.0
-    return contact_phase(radial, axial)
+    radial, _, axial, _ = deformations(rig, states)
+    return contact_phase(radial > 0.0, axial > 0.0)
 
 
 class SampleMeasures(NamedTuple):

@@ -22,7 +22,6 @@ from touchdown_ros.core.calibration import (
     stage1_value_and_grad,
     standard_errors,
 )
-from touchdown_ros.core.diagnostics import PHASES
 from touchdown_ros.core.selection import (
     BASELINE,
     Errors,
@@ -289,37 +288,3 @@ def fitted_verdict(frols_verdict: dict[str, Any], selection: Selection) -> dict[
             "baseline_nominal": base.nominal,
         },
     }
-
-
-def markdown(v: dict[str, Any]) -> list[str]:
-    """The fitted candidates' table of a verdict (`fitted_verdict`), as Markdown lines."""
-    held = v["held_out"]
-    lines = [
-        f"Candidates fitted with the model's constants (ln f0, Q factors) on the samples outside the held-out blocks "
-        f"(one {held['block_samples']}-sample block in {held['every']}), judged on the held-out ones against the same "
-        f"fit without any (criterion: BIC difference, negative is better).",
-        "",
-        "| candidate | criterion | held-out NLL fall | k-step error fall | fitted value +- sd | per bag |",
-        "|---|---:|---:|---:|---|---|",
-    ]
-    for row in v["candidates"]:
-        if not row["fitted"]:
-            continue
-        values = "; ".join(f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items())
-        per_bag = "; ".join(
-            ", ".join(f"{bag} {value:.4g} +- {p['per_bag_std'][bag]:.2g}" for bag, value in p["per_bag"].items())
-            for p in row["parameters"].values()
-            if p["per_bag"]
-        )
-        lines.append(
-            f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
-            f"{100 * row['k_step_fall']:+.0f} % | {values} | {per_bag or '-'} |"
-        )
-    phases = sorted({p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index)
-    lines += ["", "Held-out k-step error fall by contact phase:", "", "| candidate | " + " | ".join(phases) + " |",
-              "|---|" + "---:|" * len(phases)]
-    for row in v["candidates"]:
-        if row["fitted"]:
-            falls = row["k_step_fall_by_phase"]
-            lines.append(f"| {row['candidate']} | " + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases) + " |")
-    return lines

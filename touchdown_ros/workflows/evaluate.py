@@ -1,8 +1,6 @@
 """Compare the constant baseline with PKBKR on every bag, with leave-one-experiment-out training."""
 from __future__ import annotations
 
-import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -18,7 +16,6 @@ from touchdown_ros.workflows.train import Trainable, fit, load_training_data, ma
 
 #: Force above which a sample counts as part of an impact, N (about a third of the rotor weight).
 IMPACT_THRESHOLD = 800.0
-METHODS = ("constant", "pkbkr")
 
 
 @dataclass(frozen=True)
@@ -97,72 +94,3 @@ def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) 
             BagComparison(Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)})
         )
     return results
-
-
-SCALAR_COLUMNS = (
-    ("rmse_x_m", 1e6, "RMSE x / um"),
-    ("rmse_y_m", 1e6, "RMSE y / um"),
-    ("rmse_z_m", 1e6, "RMSE z / um"),
-    ("rmse_velocity_mps", 1e3, "velocity RMSE / (mm/s)"),
-    ("rmse_acceleration_mps2", 1.0, "acceleration RMSE / (m/s^2)"),
-    ("rmse_axial_force_N", 1.0, "axial force RMSE / N"),
-    ("rmse_radial_force_N", 1.0, "radial force RMSE / N"),
-    ("peak_axial_force_error", 100.0, "peak axial force error / %"),
-    ("peak_radial_force_error", 100.0, "peak radial force error / %"),
-)
-
-
-def write_tables(
-    comparisons: Sequence[BagComparison], out: Path, coefficients: str = "", cross_validated: bool = True
-) -> dict[str, Any]:
-    """evaluation.csv (one row per bag and method) and evaluation.md (a heading saying which coefficients,
-    how they were held out and what the means are, the table, the ratios); returns the aggregate."""
-    out.mkdir(parents=True, exist_ok=True)
-    columns = [c for c in SCALAR_COLUMNS if c[0] in comparisons[0].metrics["constant"]]
-    with open(out / "evaluation.csv", "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["bag", "method", *(label for _, _, label in columns)])
-        for c in comparisons:
-            for method in METHODS:
-                writer.writerow([c.path.name, method, *(f"{c.metrics[method][k] * s:.6g}" for k, s, _ in columns)])
-    aggregate = {}
-    for key, scale, label in columns:
-        values = {m: np.array([c.metrics[m][key] for c in comparisons]) for m in METHODS}
-        aggregate[key] = {
-            "label": label,
-            "constant_mean": float(np.mean(np.abs(values["constant"])) * scale),
-            "pkbkr_mean": float(np.mean(np.abs(values["pkbkr"])) * scale),
-            "pkbkr_max": float(np.max(np.abs(values["pkbkr"])) * scale),
-            "ratio_pkbkr_to_constant": float(np.mean(np.abs(values["pkbkr"])) / max(np.mean(np.abs(values["constant"])), 1e-300)),
-        }
-    held_out = (
-        "leave-one-out: each bag is estimated with PKBKR coefficients retrained without it, warm-started from "
-        "these (filtered estimate)"
-        if cross_validated
-        else "in-sample (--no-cv): these coefficients on every bag, including the bags they were trained on (filtered estimate)"
-    )
-    lines = [
-        "# Evaluation: constant model vs PKBKR",
-        "",
-        f"- Coefficients: `{coefficients or '(not given)'}`; {held_out}.",
-        "- Baseline: the constant-parameter model (all alpha = 0) with the same calibrated contact constants.",
-        "- The mean rows average the absolute value of each bag's figure (a signed peak error counts by its size); "
-        "'worst bag' is the largest absolute value.",
-        "",
-    ]
-    lines += ["| bag | method | " + " | ".join(label for _, _, label in columns) + " |", "|---|---|" + "---:|" * len(columns)]
-    for c in comparisons:
-        for method in METHODS:
-            cells = " | ".join(f"{c.metrics[method][k] * s:.3g}" for k, s, _ in columns)
-            lines.append(f"| {c.path.name} | {method} | {cells} |")
-    lines += ["", "| figure | constant (mean) | PKBKR (mean) | PKBKR (worst bag) | PKBKR / constant |", "|---|---:|---:|---:|---:|"]
-    for key, a in aggregate.items():
-        lines.append(
-            f"| {a['label']} | {a['constant_mean']:.3g} | {a['pkbkr_mean']:.3g} | {a['pkbkr_max']:.3g} | {a['ratio_pkbkr_to_constant']:.2f} |"
-        )
-    (out / "evaluation.md").write_text("\n".join(lines) + "\n")
-    return aggregate
-
-
-def log(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)

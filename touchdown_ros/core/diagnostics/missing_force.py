@@ -1,0 +1,101 @@
+"""The missing force. The state is augmented with three force states d (N, random walk) acting on
+the rotor besides the model's forces; the EKF + Rauch-Tung-Striebel smoother of `core.ekf` over
+that augmented phi (RK4 by `dynamics.rk4`, the model's measurement h) give d(t) with its standard
+deviation. The data, not the model, decide d: what the model lacks, per axis, with uncertainty."""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from touchdown_ros.core.diagnostics.breakdown import PHASES
+from touchdown_ros.core.dynamics import contact_forces, phi, rk4
+from touchdown_ros.core.ekf import Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, with_jacobian
+from touchdown_ros.core.types import STATE_SIZE, Model
+
+
+class MissingForce(NamedTuple):
+    """Smoothed estimate of the force the model lacks, and the state it was estimated with."""
+
+    force: Array  # (N, 3) N, on the rotor, sensor x/y/z
+    force_std: Array  # (N, 3) N, one standard deviation
+    state: Array  # (N, 7) smoothed state of the augmented filter
+    state_cov: Array  # (N, 7, 7)
+    model_force: Array  # (N, 3) N, the model's contact + effect forces at the smoothed state
+
+
+def augmented_transition(model: Model, h: float) -> Transition:
+    """RK4 step (h, s) of the state s = (xi, d) augmented with a force d (3,), N, on the rotor that
+    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd)."""
+    mass = model.rig.mass
+
+    def phi_aug(s: Array) -> Array:
+        rate = phi(model, s[:STATE_SIZE])
+        return jnp.concatenate([rate.at[4:].add(s[STATE_SIZE:] / mass), jnp.zeros(3, s.dtype)])
+
+    return with_jacobian(lambda s: rk4(phi_aug, s, h))
+
+
+def model_force(model: Model, xi: Array) -> Array:
+    """(3,) N: the model's contact force plus its effects' forces on the rotor at xi."""
+    c = contact_forces(model, xi)
+    force = jnp.stack([c.F_x, c.F_y, c.F_z])
+    if model.effects:
+        force = force + model.effects.force(xi, model.rig)
+    return force
+
+
+def disturbance_smoother(
+    model: Model,
+    process: Array,
+    measurement: Array,
+    initial: Belief,
+    etas: Array,
+    h: float,
+    force_walk: float,
+    force_initial: float = 1.0e3,
+) -> MissingForce:
+    """EKF + RTS smoother of the state augmented with a force d (3,) on the rotor (random walk
+    of force_walk N rms per sample, starting at 0 +- force_initial N). Returns d(t) with its
+    standard deviation: the force the model lacks, decided by the data."""
+    Q = jnp.diag(jnp.concatenate([jnp.asarray(process), jnp.full(3, force_walk**2)]))
+    R = jnp.diag(jnp.asarray(measurement))
+    mean0 = jnp.concatenate([initial.mean, jnp.zeros(3)])
+    cov0 = jax.scipy.linalg.block_diag(initial.cov, force_initial**2 * jnp.eye(3))
+    transition, measure = augmented_transition(model, h), model_measurement(model)
+    outputs = extended_kalman_filter(transition, measure, Q, R, Belief(mean0, cov0), jnp.asarray(etas))
+    smoothed = rts_smoother(outputs)
+    state = smoothed.mean[:, :STATE_SIZE]
+    forces = jax.vmap(lambda s: model_force(model, s))(state)
+    return MissingForce(
+        force=smoothed.mean[:, 7:],
+        force_std=jnp.sqrt(jnp.diagonal(smoothed.cov, axis1=1, axis2=2)[:, 7:]),
+        state=state,
+        state_cov=smoothed.cov[:, :STATE_SIZE, :STATE_SIZE],
+        model_force=forces,
+    )
+
+
+def missing_force_table(force: np.ndarray, force_std: np.ndarray, phase: np.ndarray) -> dict[str, Any]:
+    """Mean, rms and mean standard deviation of the missing force (N, 3) per contact phase
+    (`PHASES`, those with samples) and over all samples."""
+    table = {}
+    for i, name in enumerate(PHASES):
+        rows = phase == i
+        if rows.any():
+            table[name] = {
+                "samples": int(rows.sum()),
+                "mean_N": force[rows].mean(axis=0).tolist(),
+                "rms_N": np.sqrt(np.mean(force[rows] ** 2, axis=0)).tolist(),
+                "std_of_estimate_N": force_std[rows].mean(axis=0).tolist(),
+            }
+    table["all"] = {
+        "samples": int(len(force)),
+        "mean_N": force.mean(axis=0).tolist(),
+        "rms_N": np.sqrt(np.mean(force**2, axis=0)).tolist(),
+        "std_of_estimate_N": force_std.mean(axis=0).tolist(),
+    }
+    return table

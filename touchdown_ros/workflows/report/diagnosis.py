@@ -1,0 +1,243 @@
+"""`touchdown diagnose`'s report: diagnosis.json, diagnosis.md, errors.csv, ranking.csv and the figures."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from touchdown_ros.core.diagnostics.breakdown import AXES, PHASES
+from touchdown_ros.core.diagnostics.prediction import comparison
+from touchdown_ros.io.config import Config
+from touchdown_ros.workflows.report.diagnosis_figures import plot_diagnosis
+
+if TYPE_CHECKING:  # the workflow imports this module to write its results
+    from touchdown_ros.workflows.diagnose import Diagnosis, Settings
+
+
+def write_diagnosis(diagnoses: Sequence[Diagnosis], config: Config, out: Path, settings: Settings) -> dict[str, Any]:
+    """diagnosis.json, diagnosis.md, errors.csv, ranking.csv and the figures in out."""
+    out.mkdir(parents=True, exist_ok=True)
+    document: dict[str, Any] = {
+        "settings": {
+            "k_step_samples": settings.k,
+            "k_step_seconds": settings.k * config.sample_period,
+            "force_walk_N_per_sample": settings.force_walk,
+            "unexplained_below_err_percent": 100 * settings.threshold,
+            "fitted_candidates": settings.fitted,
+        },
+        "models": [_json_ready(d, settings) for d in diagnoses],
+    }
+    if len(diagnoses) == 2:
+        document["comparison"] = comparison(diagnoses[0].metrics, diagnoses[1].metrics)
+    (out / "diagnosis.json").write_text(json.dumps(document, indent=2, allow_nan=True))
+    _write_csv(diagnoses, out)
+    (out / "diagnosis.md").write_text(markdown(document))
+    plot_diagnosis(diagnoses, config, out / "figures")
+    return document
+
+
+def _json_ready(diagnosis: Diagnosis, settings: Settings) -> dict[str, Any]:
+    return {
+        "label": diagnosis.label,
+        "coefficients": diagnosis.coefficients,
+        "effects": diagnosis.effects,
+        "metrics": diagnosis.metrics,
+        "residual_tests": diagnosis.tests,
+        "verdict": diagnosis.verdict,
+        "signature": diagnosis.signature,
+        "bags": {
+            b.path.name: {"path": str(b.path), "conditions": b.conditions, **b.metrics} for b in diagnosis.bags
+        },
+    }
+
+
+def _write_csv(diagnoses: Sequence[Diagnosis], out: Path) -> None:
+    with open(out / "errors.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["model", "bag", "phase", "axis", "samples", "k_step_rmse_m", "force_rmse_N"])
+        for d in diagnoses:
+            for bag, metrics in [("ALL", d.metrics)] + [(b.path.name, b.metrics) for b in d.bags]:
+                for phase, p in [("all", None)] + list(metrics["phases"].items()):
+                    for i, axis in enumerate(AXES):
+                        if p is None:
+                            k, f, n = metrics["k_step"]["rmse_m"][i], metrics.get("contact_force", {}).get("rmse_N", [None] * 3)[i], metrics["samples"]
+                        else:
+                            k, f, n = p["k_step_rmse_m"][i], p.get("force_rmse_N", [None] * 3)[i], p["samples"]
+                        writer.writerow([d.label, bag, phase, axis, n, k, f])
+    with open(out / "ranking.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["model", "rank", "candidate", "err_percent", "parameter", "value", "std", "ci95_low", "ci95_high", "unit"])
+        for d in diagnoses:
+            for row in d.verdict["candidates"]:
+                for name, p in row["parameters"].items():
+                    writer.writerow(
+                        [d.label, row["rank"], row["candidate"], f"{row['err_percent']:.3f}", name, p["value"], p["std"], *p["ci95"], p["unit"]]
+                    )
+
+
+def _um(v) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{v * 1e6:.2f}"
+
+
+def markdown(document: dict[str, Any]) -> str:
+    """The report as Markdown: errors, residual tests, missing force, ranking, verdict (side by side)."""
+    models = document["models"]
+    labels = [m["label"] for m in models]
+    s = document["settings"]
+    lines = ["# touchdown diagnose\n", f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n"]
+    lines += [f"- **{m['label']}**: {m['coefficients']}; effects {m['effects'] or 'none'}" for m in models]
+    lines.append("")
+
+    def row(name: str, values: list[str]) -> str:
+        return f"| {name} | " + " | ".join(values) + " |"
+
+    head = "| | " + " | ".join(labels) + (" | after / before |" if len(models) == 2 else " |")
+    rule = "|---|" + "---:|" * (len(models) + (1 if len(models) == 2 else 0))
+    lines += ["## Errors per axis", "", head, rule]
+
+    def ratio(a, b):
+        return f"{a / b:.2f}" if (a is not None and b) else "-"
+
+    for kind, title in (("one_step", "one-step"), ("k_step", "k-step")):
+        for i, axis in enumerate(AXES):
+            vals = [m["metrics"][kind]["rmse_m"][i] for m in models]
+            fits = [m["metrics"][kind]["fit_percent"][i] for m in models]
+            cells = [f"{_um(v)} um, fit {f:.1f} %" for v, f in zip(vals, fits)]
+            if len(models) == 2:
+                cells.append(ratio(vals[1], vals[0]))
+            lines.append(row(f"{title} {axis} RMSE (eq. 19)", cells))
+    if all("contact_force" in m["metrics"] for m in models):
+        for i, axis in enumerate(AXES):
+            vals = [m["metrics"]["contact_force"]["rmse_N"][i] for m in models]
+            cells = [f"{v:.0f} N" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])
+            lines.append(row(f"contact force {axis} RMSE vs truth", cells))
+        vals = [m["metrics"]["contact_force"]["rmse_norm_N"] for m in models]
+        lines.append(row("contact force RMSE (norm) vs truth", [f"{v:.0f} N" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])))
+    vals = [m["metrics"]["k_step"]["rmse_norm_m"] for m in models]
+    lines.append(row("**k-step RMSE (norm)**", [f"{_um(v)} um" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])))
+
+    lines += ["", "## k-step RMSE by contact phase (x / y / z, um)", "", head, rule]
+    for phase in models[0]["metrics"]["phases"]:
+        ps = [m["metrics"]["phases"][phase] for m in models]
+        cells = [f"{' / '.join(_um(v) for v in p['k_step_rmse_m'])} ({p['samples']})" for p in ps]
+        if len(models) == 2:
+            a, b = (np.linalg.norm(np.nan_to_num(p["k_step_rmse_m"])) for p in ps[::-1])
+            cells.append(ratio(a, b))
+        lines.append(row(phase, cells))
+    if all("force_rmse_N" in m["metrics"]["phases"][PHASES[0]] for m in models):
+        lines += ["", "## Contact-force RMSE vs truth by phase (x / y / z, N)", "", head, rule]
+        for phase in models[0]["metrics"]["phases"]:
+            ps = [m["metrics"]["phases"][phase] for m in models]
+            cells = [" / ".join("-" if v is None or not np.isfinite(v) else f"{v:.0f}" for v in p["force_rmse_N"]) for p in ps]
+            if len(models) == 2:
+                a, b = (np.linalg.norm(np.nan_to_num(p["force_rmse_N"])) for p in ps[::-1])
+                cells.append(ratio(a, b))
+            lines.append(row(phase, cells))
+
+    lines += ["", "## k-step RMSE by impact (norm, um)", "", head, rule]
+    n_impacts = max(len(m["metrics"]["impacts"]) for m in models)
+    for k in range(min(n_impacts, 10)):
+        cells = []
+        for m in models:
+            imp = m["metrics"]["impacts"]
+            cells.append(_um(np.linalg.norm(imp[k]["k_step_rmse_m"])) if k < len(imp) else "-")
+        if len(models) == 2:
+            cells.append("")
+        lines.append(row(f"impact {k + 1}", cells))
+
+    lines += ["", "## Residual tests (innovations; 99 % band, white: ~1 % of lags outside)", "", head, rule]
+    for axis in AXES:
+        for key, title in (
+            ("whiteness_outside_share", "autocorrelation: lags outside band"),
+            ("velocity_xcorr_outside_share", "x-corr with velocity: lags outside"),
+            ("deformation_xcorr_outside_share", "x-corr with deformation: lags outside"),
+        ):
+            vals = [m["residual_tests"][axis][key] for m in models]
+            lines.append(row(f"{axis} {title}", [f"{100 * v:.0f} %" for v in vals] + ([""] if len(models) == 2 else [])))
+
+    lines += ["", "## Missing force (smoothed disturbance states): mean +- rms of the estimate's std, N", "", head, rule]
+    for phase in list(PHASES) + ["all"]:
+        cells = []
+        for m in models:
+            t = m["metrics"]["missing_force"].get(phase)
+            cells.append(
+                "-" if t is None else " / ".join(f"{mu:.0f}+-{sd:.0f}" for mu, sd in zip(t["mean_N"], t["std_of_estimate_N"]))
+            )
+        if len(models) == 2:
+            cells.append("")
+        lines.append(row(f"{phase} (x / y / z)", cells))
+
+    for m in models:
+        v = m["verdict"]
+        lines += [
+            "",
+            f"## Which effect is missing ({m['label']})",
+            "",
+            f"**{v['text']}**",
+            "",
+        ]
+        if "frols" in v:
+            lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
+        lines += [
+            f"The model's own PKBKR coefficients (forced first) can absorb {v['forced_err_percent']:.1f} % of the "
+            f"missing-force energy; the ERR below are shares of the rest. FROLS threshold: {v['threshold_percent']:.0f} %.",
+            "",
+            "| rank | candidate | ERR | parameters (linearised fit, +- 1 std, pooled; per bag) |",
+            "|---:|---|---:|---|",
+        ]
+        for c in v.get("frols", v["candidates"]):
+            params = "; ".join(
+                f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']} ("
+                + ", ".join(f"{bag} {val:.4g}" for bag, val in p["per_bag"].items())
+                + ")"
+                for n, p in c["parameters"].items()
+            )
+            lines.append(f"| {c['rank']} | {c['candidate']} | {c['err_percent']:.1f} % | {params} |")
+        lines.append("")
+        lines.append("FROLS order: " + ", ".join(f"{o['candidate']} (+{o['err_percent']:.1f} %, {o['cumulative_percent']:.1f} %)" for o in v["order"]))
+        lines += ["", f"Residual signature: {m['signature']['summary']}."]
+    if "comparison" in document:
+        c = document["comparison"]
+        lines += ["", "## After / before", ""]
+        lines.append(f"- k-step RMSE (norm): x {c['k_step_rmse_norm']:.2f}")
+        if "contact_force_rmse_norm" in c:
+            lines.append(f"- contact-force RMSE vs truth (norm): x {c['contact_force_rmse_norm']:.2f}")
+        lines.append("- missing force rms per axis: " + " / ".join(f"x {v:.2f}" for v in c["missing_force_rms"]))
+    return "\n".join(lines) + "\n"
+
+
+def fitted_markdown(v: dict[str, Any]) -> list[str]:
+    """The fitted candidates' table of a verdict (`fitted_verdict`), as Markdown lines."""
+    held = v["held_out"]
+    lines = [
+        f"Candidates fitted with the model's constants (ln f0, Q factors) on the samples outside the held-out blocks "
+        f"(one {held['block_samples']}-sample block in {held['every']}), judged on the held-out ones against the same "
+        f"fit without any (criterion: BIC difference, negative is better).",
+        "",
+        "| candidate | criterion | held-out NLL fall | k-step error fall | fitted value +- sd | per bag |",
+        "|---|---:|---:|---:|---|---|",
+    ]
+    for row in v["candidates"]:
+        if not row["fitted"]:
+            continue
+        values = "; ".join(f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items())
+        per_bag = "; ".join(
+            ", ".join(f"{bag} {value:.4g} +- {p['per_bag_std'][bag]:.2g}" for bag, value in p["per_bag"].items())
+            for p in row["parameters"].values()
+            if p["per_bag"]
+        )
+        lines.append(
+            f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
+            f"{100 * row['k_step_fall']:+.0f} % | {values} | {per_bag or '-'} |"
+        )
+    phases = sorted({p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index)
+    lines += ["", "Held-out k-step error fall by contact phase:", "", "| candidate | " + " | ".join(phases) + " |",
+              "|---|" + "---:|" * len(phases)]
+    for row in v["candidates"]:
+        if row["fitted"]:
+            falls = row["k_step_fall_by_phase"]
+            lines.append(f"| {row['candidate']} | " + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases) + " |")
+    return lines
