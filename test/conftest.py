@@ -8,7 +8,7 @@ import pytest
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.io.config import Config, load_config
-from touchdown_ros.workflows.offline import write_drop_bag
+from touchdown_ros.sim.bags import write_drop_bag
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.record import DropRecord
 from touchdown_ros.sim.simulator import simulate_drop

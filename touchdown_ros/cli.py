@@ -12,9 +12,9 @@ from touchdown_ros import __version__
 from touchdown_ros.core import xla
 from touchdown_ros.io.bags import BagError
 from touchdown_ros.io.coefficients import CoefficientFileError
-from touchdown_ros.io.config import ConfigError, load_config
-from touchdown_ros.workflows.outputs import OutputError, OutputGuard, check_writable
-from touchdown_ros.workflows.progress import progress
+from touchdown_ros.io.config import Config, ConfigError, load_config
+from touchdown_ros.sim.family import RIG_FILE, variant, variant_names
+from touchdown_ros.workflows.outputs import OutputError
 
 EXIT_USAGE = 2  # wrong command line (argparse)
 EXIT_BAD_INPUT = 3  # a bag, rig YAML, coefficient file or argument is refused (docs/input_policy.md)
@@ -45,128 +45,76 @@ def _parameter(text: str) -> tuple[str, object]:
         raise ConfigError(f"-p {text!r}: the value is not valid YAML: {error}") from None
 
 
-def _config(args: argparse.Namespace):
+def _config(args: argparse.Namespace) -> Config:
     """The rig of --config with the -p overrides."""
-    return load_config(args.config, dict(_parameter(p) for p in getattr(args, "param", [])))
+    return load_config(args.config, _overrides(args.param))
 
 
-def _refuse_existing(path: Path, overwrite: bool) -> None:
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
+def _overrides(parameters: Sequence[str]) -> dict[str, object]:
+    """-p NAME:=VALUE options as the overrides of `load_config` (a later one of a name wins)."""
+    return dict(_parameter(p) for p in parameters)
+
+
+def _commands():
+    """The workflows, imported when a command runs (matplotlib, scipy and the workflows add about 2 s
+    to the start that --help does not need)."""
+    from touchdown_ros.workflows import commands  # lazy: start-up time of the CLI
+
+    return commands
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from touchdown_ros.workflows.offline import write_drop_bag
-    from touchdown_ros.sim.campaign import CAMPAIGN
-    from touchdown_ros.sim.simulator import simulate_drop
-
-    if getattr(args, "variant", None):
-        return _simulate_variant(args)
+    if args.variant:
+        v = variant(args.variant)
+        if args.campaign:
+            raise ValueError("--campaign is Table 1 of the reference rig; with --variant pick drops with --experiment N...")
+        if args.config is not None or args.param:
+            raise ValueError("--variant brings its own rig (the reference rig with its overrides); drop --config and -p")
+        paths = _commands().simulate_variant(v, args.out, args.experiment, args.seed, args.overwrite)
+        print(f"wrote {len(paths)} bag(s) of rig variant {v.name} ({v.description}) and its {RIG_FILE} to {args.out}")
+        return 0
     if not args.campaign and not args.experiment:
         raise ValueError("pass --campaign, --experiment N... or --variant NAME")
-    config = _config(args)
-    numbers = [c.number for c in CAMPAIGN] if args.campaign else args.experiment
-    conditions = [c for c in CAMPAIGN if c.number in numbers]
-    missing = sorted(set(numbers) - {c.number for c in conditions})
-    if missing:
-        raise ValueError(f"no experiment numbered {missing} in the campaign (1-{len(CAMPAIGN)})")
-    args.out.mkdir(parents=True, exist_ok=True)
-    targets = [args.out / f"exp_{c.number:02d}" for c in conditions]
-    for target in targets:
-        _refuse_existing(target, args.overwrite)
-    for condition, target in progress(zip(conditions, targets), len(conditions), "simulate"):
-        record = simulate_drop(config, condition, seed=args.seed + condition.number)
-        write_drop_bag(record, config, target, overwrite=args.overwrite)
-    print(f"wrote {len(targets)} bag(s) to {args.out}")
+    numbers = None if args.campaign else args.experiment
+    _simulated(_commands().simulate_campaign(_config(args), args.out, numbers, args.seed, args.overwrite), args.out)
     return 0
 
 
-def _simulate_variant(args: argparse.Namespace) -> int:
-    """`simulate --variant NAME`: the variant's drops as bags NAME_NN, its rig.yaml next to them."""
-    from touchdown_ros.sim.family import RIG_FILE, bag_name, variant, write_variant_bags
-
-    v = variant(args.variant)
-    if args.campaign:
-        raise ValueError("--campaign is Table 1 of the reference rig; with --variant pick drops with --experiment N...")
-    if args.config is not None or args.param:
-        raise ValueError("--variant brings its own rig (the reference rig with its overrides); drop --config and -p")
-    numbers = sorted(set(args.experiment or range(1, v.drops + 1)))
-    if numbers[0] < 1:
-        raise ValueError(f"experiment numbers of a variant start at 1, got {numbers[0]}")
-    for number in numbers:
-        _refuse_existing(args.out / bag_name(v, number), args.overwrite)
-    paths = []
-    for number in progress(numbers, len(numbers), f"simulate {v.name}"):
-        paths += write_variant_bags(v, args.out, seed=args.seed, numbers=[number], overwrite=args.overwrite)
-    print(f"wrote {len(paths)} bag(s) of rig variant {v.name} ({v.description}) and its {RIG_FILE} to {args.out}")
-    return 0
+def _simulated(paths: Sequence[Path], out: Path) -> None:
+    print(f"wrote {len(paths)} bag(s) to {out}")
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from touchdown_ros.workflows.offline import FILTERED, SMOOTHED, check_bag, estimate_bag, estimator_for, write_estimate_bag
-    from touchdown_ros.workflows.report.estimate import plot_estimate, write_summaries
-
-    config = _config(args)
-    coeffs = effects = None
-    if args.coeffs is not None:
-        from touchdown_ros.io.coefficients import load_coefficients
-
-        loaded = load_coefficients(args.coeffs, config)
-        coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
-    check_writable(args.out, directory=True)
-    targets = [args.out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in args.bags]
-    for target in targets:
-        _refuse_existing(target, args.overwrite)
-    for bag in args.bags:  # every bag is checked before anything is written
-        check_bag(config, bag)
-    estimator = estimator_for(config, coeffs, effects)
-    answer = FILTERED if args.filtered else SMOOTHED
-    figures = [args.out / "figures" / Path(bag).name for bag in args.bags]
-    written = [args.out, *targets, args.out / "figures", *figures, args.out / "summary.json", args.out / "summary.md"]
-    results = []
-    with OutputGuard(written):
-        args.out.mkdir(parents=True, exist_ok=True)
-        for bag, target, figure in progress(zip(args.bags, targets, figures), len(args.bags), "estimate"):
-            result = estimate_bag(config, bag, estimator, answer=answer)
-            write_estimate_bag(result, config, target, overwrite=args.overwrite)
-            if not args.no_figures:
-                plot_estimate(result, figure)
-            results.append(result)
-        write_summaries(
-            results, args.out, {"coefficients": str(args.coeffs) if args.coeffs else "constant model", "estimate": answer}
-        )
-    print((args.out / "summary.md").read_text(), end="")
-    print(f"estimates, summary.json/.md and figures in {args.out}")
+    _commands().estimate_bags(
+        _config(args), args.bags, args.out, args.coeffs, args.filtered, not args.no_figures, args.overwrite
+    )
+    _estimated(args.out)
     return 0
 
 
+def _estimated(out: Path) -> None:
+    print((out / "summary.md").read_text(), end="")
+    print(f"estimates, summary.json/.md and figures in {out}")
+
+
 def cmd_train(args: argparse.Namespace) -> int:
-    from touchdown_ros.workflows.train import train
+    outcome = _commands().train_bags(
+        _config(args),
+        args.bags,
+        args.out,
+        regularisation=args.regularisation,
+        init=args.init,
+        resume=args.resume,
+        steps=args.steps,
+        duration=args.duration,
+        overwrite=args.overwrite,
+    )
+    _trained(outcome, len(args.bags), args.out)
+    return 0
 
-    from touchdown_ros.workflows.offline import check_training_bag
 
-    config = _config(args)
-    if args.out.exists() and not (args.overwrite or args.resume):
-        raise FileExistsError(f"{args.out} exists; pass --overwrite to replace it or --resume to continue")
-    check_writable(args.out, directory=False)
-    if args.init is not None:
-        from touchdown_ros.io.coefficients import load_coefficients
-
-        load_coefficients(args.init, config)
-    for bag in args.bags:  # every bag is checked before the work
-        check_training_bag(config, bag)
-    # the checkpoint stays when training stops (--resume continues from it); the file is written at the end, atomically
-    with OutputGuard([args.out]):
-        outcome = train(
-            config,
-            args.bags,
-            args.out,
-            regularisation=args.regularisation,
-            init=args.init,
-            resume=args.resume,
-            max_steps=args.steps,
-            duration=args.duration,
-        )
+def _trained(outcome, bags: int, out: Path) -> None:
+    """What both training stages did, in a few lines."""
     calibration, pkbkr = outcome.calibration, outcome.pkbkr
     if calibration is not None:
         nominal = outcome.config.nominal
@@ -186,109 +134,62 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"{pkbkr.initial_loss:.6g} -> {pkbkr.final_loss:.6g}; mean NIS per bag "
         f"{min(outcome.mean_nis):.2f}-{max(outcome.mean_nis):.2f} (3 when consistent)"
     )
-    print(f"trained on {len(args.bags)} bag(s) in {outcome.seconds:.1f} s; wrote {args.out}")
-    return 0
+    print(f"trained on {bags} bag(s) in {outcome.seconds:.1f} s; wrote {out}")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from touchdown_ros.workflows.evaluate import compare, cross_validate
-    from touchdown_ros.io.coefficients import load_coefficients
-    from touchdown_ros.workflows.offline import check_training_bag
-    from touchdown_ros.workflows.train import Trainable
-
-    config = _config(args)
-    full = load_coefficients(args.coeffs, config)
-    config = full.config(config)
-    lam = full.training.regularisation
-    trained = Trainable(full.coeffs, full.effects)
-    check_writable(args.out, directory=True)
-    for bag in args.bags:  # every bag is checked before the work
-        check_training_bag(config, bag)
-    if args.no_cv:
-        per_bag = [trained] * len(args.bags)
-    else:
-        per_bag = cross_validate(config, args.bags, trained, lam, args.cv_steps)
-    comparisons = compare(config, args.bags, per_bag)
-    with OutputGuard([args.out, *(args.out / n for n in ("evaluation.md", "evaluation.csv", "evaluation.json", "figures"))]):
-        _write_evaluation(args, comparisons, config, full)
-    print((args.out / "evaluation.md").read_text(), end="")
-    print(f"tables, evaluation.json and figures in {args.out}")
+    _commands().evaluate_bags(
+        _config(args), args.bags, args.coeffs, args.out, not args.no_cv, args.cv_steps, args.example
+    )
+    _evaluated(args.out)
     return 0
 
 
-def _write_evaluation(args: argparse.Namespace, comparisons, config, full) -> None:
-    from touchdown_ros.workflows.report.evaluation import write_evaluation
-
-    write_evaluation(comparisons, config, full.coeffs, args.out, args.coeffs, not args.no_cv, args.example)
+def _evaluated(out: Path) -> None:
+    print((out / "evaluation.md").read_text(), end="")
+    print(f"tables, evaluation.json and figures in {out}")
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from touchdown_ros.workflows.diagnose import Settings, run
-
+    commands = _commands()
     config = _config(args)
-    settings = Settings(k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0, fitted=args.fit)
     if args.k < 1 or args.force_walk <= 0 or not 0 < args.threshold < 100 or args.fit < 0:
         raise ValueError("--k must be >= 1, --force-walk > 0, --threshold in (0, 100) and --fit >= 0")
-    from touchdown_ros.workflows.offline import check_bag
-
-    check_writable(args.out, directory=True)
-    for bag in args.bags:  # every bag is checked before the work
-        check_bag(config, bag)
-    names = ("diagnosis.md", "diagnosis.json", "errors.csv", "ranking.csv", "figures")
-    with OutputGuard([args.out, *(args.out / name for name in names)]):
-        run(config, args.bags, args.out, coeffs=args.coeffs, compare=args.compare, settings=settings)
+    settings = commands.DiagnoseSettings(
+        k=args.k, force_walk=args.force_walk, threshold=args.threshold / 100.0, fitted=args.fit
+    )
+    commands.diagnose_bags(config, args.bags, args.out, args.coeffs, args.compare, settings)
     print((args.out / "diagnosis.md").read_text(), end="")
     print(f"diagnosis.md/.json, errors.csv, ranking.csv and figures in {args.out}")
     return 0
 
 
+#: The demo's training: Table 1's axial loader is a recorded test condition, so its force is fitted where
+#: it was on (docs/workbench.md shows how the workbench finds this missing effect).
+DEMO_EFFECTS = {"effects.active": ["axial_load"], "effects.when.axial_load": "axial_load"}
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Simulate the 21-experiment campaign, train PKBKR, evaluate it leave-one-out, estimate exp 11."""
+    commands = _commands()
     out: Path = args.out
     bags = out / "bags"
-    numbers = [11] if args.quick else None
-    cmd_simulate(
-        argparse.Namespace(
-            config=args.config, param=args.param, out=bags, campaign=not args.quick, experiment=numbers,
-            seed=args.seed, overwrite=True,
-        )
-    )
+    overrides = _overrides(args.param)
+    config = load_config(args.config, overrides)
+    _simulated(commands.simulate_campaign(config, bags, [11] if args.quick else None, args.seed, overwrite=True), bags)
     all_bags = sorted(bags.glob("exp_*"))
-    # Table 1's axial loader is a recorded test condition: fit its force where it was on
-    # (docs/workbench.md shows how the workbench finds this missing effect).
-    effect = [] if args.paper_model else ["effects.active:=[axial_load]", "effects.when.axial_load:=axial_load"]
+    coeffs = None
     if not args.quick:
+        trained = config if args.paper_model else load_config(args.config, {**overrides, **DEMO_EFFECTS})
         coeffs = out / "coefficients.yaml"
-        cmd_train(
-            argparse.Namespace(
-                config=args.config, param=args.param + effect, bags=all_bags, out=coeffs, regularisation=None, init=None,
-                resume=False,
-                steps=args.steps, duration=None, overwrite=True,
-            )
-        )
-        cmd_evaluate(
-            argparse.Namespace(
-                config=args.config, param=args.param + effect, bags=all_bags, coeffs=coeffs, out=out / "evaluation",
-                no_cv=False,
-                cv_steps=args.cv_steps, example="exp_11",
-            )
-        )
-    cmd_estimate(
-        argparse.Namespace(
-            config=args.config, param=args.param, bags=[bags / "exp_11"],
-            coeffs=None if args.quick else out / "coefficients.yaml",
-            out=out / "estimate", overwrite=True, no_figures=False, filtered=False,
-        )
-    )
+        _trained(commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs)
+        commands.evaluate_bags(trained, all_bags, coeffs, out / "evaluation", cv_steps=args.cv_steps, example="exp_11")
+        _evaluated(out / "evaluation")
+    commands.estimate_bags(config, [bags / "exp_11"], out / "estimate", coeffs, overwrite=True)
+    _estimated(out / "estimate")
     report = "" if args.quick else f"evaluation report in {out / 'evaluation'}, "
     print(f"demo done: {report}figures of exp_11 in {out / 'estimate' / 'figures' / 'exp_11'}")
     return 0
-
-
-def _variant_names() -> list[str]:
-    from touchdown_ros.sim.family import VARIANTS
-
-    return [v.name for v in VARIANTS]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -309,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--variant", metavar="NAME",
         help="a rig of the family that differs from the reference rig (touchdown_ros.sim.family): "
-        "bags NAME_NN (default: its 3 drops) and the variant's rig.yaml in --out; one of: " + ", ".join(_variant_names()),
+        "bags NAME_NN (default: its 3 drops) and the variant's rig.yaml in --out; one of: " + ", ".join(variant_names()),
     )
     p.add_argument("--seed", type=int, default=0, help="base random seed (experiment N uses seed + N)")
     p.add_argument("-o", "--out", type=Path, required=True, help="directory for the bags exp_NN/ (or NAME_NN/)")
@@ -402,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["replay"]:
-        from touchdown_ros.ros.replay import replay_main
+        from touchdown_ros.ros.replay import replay_main  # lazy: rclpy, needed by replay alone
 
         return replay_main(argv[1:])
     args = build_parser().parse_args(argv)

@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from touchdown_ros.io.config import Config, ConfigError, load_config
+from touchdown_ros.sim.bags import write_drop_bag
 from touchdown_ros.sim.params import BALLS, simulator_parameters
 from touchdown_ros.sim.record import DropCondition, DropRecord
 from touchdown_ros.sim.simulator import simulate_drop
@@ -271,8 +272,6 @@ def write_variant_bags(
 ) -> list[Path]:
     """Simulate the variant's drops into bags `<variant>_NN` in out_dir, with the variant's `rig.yaml`
     next to them (what the user hands to `touchdown train --config`); returns the bag paths."""
-    from touchdown_ros.workflows.offline import write_drop_bag  # the bag writer (rosbag2 MCAP), not physics
-
     out_dir = Path(out_dir)
     chosen = _numbers(v, n_drops, numbers)
     targets = [out_dir / bag_name(v, n) for n in chosen]

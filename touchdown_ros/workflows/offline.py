@@ -5,6 +5,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from touchdown_ros.core.effects import Effects, gates_for
@@ -20,7 +21,6 @@ from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import (
     BagError,
-    CONDITION_PREFIX,
     TopicSeries,
     Truth,
     read_conditions,
@@ -183,7 +183,6 @@ def concatenate_estimates(parts: list[Estimate]) -> Estimate:
     """One Estimate of consecutive segments' estimates (each filtered and smoothed on its own)."""
     if len(parts) == 1:
         return parts[0]
-    import jax
 
     def join(*arrays):
         return np.concatenate([np.asarray(a) for a in arrays])
@@ -312,30 +311,4 @@ def write_estimate_bag(result: BagEstimate, config: Config, out: Path, overwrite
     with `PREDICTED_ONLY_TOPIC` marking the rows without a usable measurement."""
     topics = estimate_topics(result.estimate, config, result.answer) + [predicted_only_topic(result.estimate, config)]
     write_bag(out, topics, overwrite=overwrite)
-    return out
-
-
-def conditions_of(condition) -> dict[str, str]:
-    """A Table 1 row as the bag's `condition.*` custom data (what an experimenter logs)."""
-    return {
-        f"{CONDITION_PREFIX}{name}": (str(value).lower() if isinstance(value, bool) else str(value))
-        for name, value in vars(condition).items()
-    }
-
-
-def write_drop_bag(record, config: Config, out: Path, overwrite: bool = False) -> Path:
-    """A simulated drop as a bag: `/amb/displacement` plus the `/truth/...` topics, and the
-    experiment's conditions (brake, axial load, ball) in metadata.yaml (not for a bare .mcap)."""
-    topics, frame, stamps = config.topics, config.topics.frame_id, record.stamps_ns
-    write_bag(
-        out,
-        [
-            TopicSeries(topics.displacement, "PointStamped", stamps, record.measured, frame_id=frame),
-            TopicSeries(topics.truth_velocity, "Vector3Stamped", stamps, record.velocity, frame_id=frame),
-            TopicSeries(topics.truth_acceleration, "Vector3Stamped", stamps, record.acceleration, frame_id=frame),
-            TopicSeries(topics.truth_contact_force, "WrenchStamped", stamps, record.contact_force, frame_id=frame),
-        ],
-        overwrite=overwrite,
-        custom_data=None if Path(out).suffix == ".mcap" else conditions_of(record.condition),
-    )
     return out
