@@ -47,7 +47,9 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         bags_dir = args.bags or Path(tmp) / "campaign"
         if args.bags is None:
-            subprocess.run([python, "-m", "touchdown_ros.cli", "simulate", "--campaign", "-o", str(bags_dir)], check=True)
+            subprocess.run(
+                [python, "-m", "touchdown_ros.cli", "simulate", "--campaign", "-o", str(bags_dir)], check=True
+            )
         bags = [str(b) for b in sorted(bags_dir.glob("exp_*"))]
         out = str(Path(tmp) / "c.yaml")
         train = [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER]

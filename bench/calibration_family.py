@@ -64,7 +64,9 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "velocity_band_coverage_percent": _coverage(
             np.asarray(smoothed.state)[:, 4:], np.asarray(smoothed.state_cov)[:, 4:, 4:], truth.velocity
         ),
-        "force_band_coverage_percent": _coverage(force, None if force_cov is None else np.asarray(force_cov), true_force),
+        "force_band_coverage_percent": _coverage(
+            force, None if force_cov is None else np.asarray(force_cov), true_force
+        ),
     }
 
 
@@ -117,7 +119,8 @@ def _worst(rows: list[dict], key: str) -> float | None:
 def table(results: list[dict]) -> str:
     """Markdown: per rig and model, the worst held-out bag of each figure."""
     lines = [
-        "| rig | model | law | peak F_z err % | peak F_r err % | force RMSE / peak % | disp. RMSE / noise | 95 % band covers v / F % |",
+        "| rig | model | law | peak F_z err % | peak F_r err % | force RMSE / peak % | disp. RMSE / noise "
+        "| 95 % band covers v / F % |",
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for result in results:
@@ -127,7 +130,8 @@ def table(results: list[dict]) -> str:
             cover_f = [r["force_band_coverage_percent"] for r in rows]
             coverage = f"{min(cover_v):.0f}" + (f" / {min(cover_f):.0f}" if None not in cover_f else " / -")
             lines.append(
-                f"| {result['variant']} ({result['loss']}) | {label} | {law} | {_worst(rows, 'peak_axial_error_percent'):.1f} | "
+                f"| {result['variant']} ({result['loss']}) | {label} | {law} "
+                f"| {_worst(rows, 'peak_axial_error_percent'):.1f} | "
                 f"{_worst(rows, 'peak_radial_error_percent'):.1f} | {_worst(rows, 'force_rmse_percent_of_peak'):.1f} | "
                 f"{_worst(rows, 'displacement_rmse_over_noise'):.2f} | {coverage} |"
             )
@@ -147,7 +151,11 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for name in args.variants.split(","):
         log = sys.stderr if args.verbose else io.StringIO()
-        print(f"[{name}] simulating, training on {args.train} bags, estimating {args.test} ...", file=sys.stderr, flush=True)
+        print(
+            f"[{name}] simulating, training on {args.train} bags, estimating {args.test} ...",
+            file=sys.stderr,
+            flush=True,
+        )
         results.append(run_variant(name, args.out, args.train, args.test, args.loss, log))
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))

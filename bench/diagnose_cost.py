@@ -30,12 +30,16 @@ def main() -> int:
         subprocess.run([*touchdown, "simulate", "--experiment", "9", "11", "-o", str(bags_dir)], check=True)
         bags = [str(bags_dir / "exp_09"), str(bags_dir / "exp_11")]
         calibrated = str(Path(tmp) / "calibrated.yaml")
-        subprocess.run([*touchdown, "train", *bags, "-o", calibrated, "--steps", "0"], check=True, stderr=subprocess.DEVNULL)
+        subprocess.run(
+            [*touchdown, "train", *bags, "-o", calibrated, "--steps", "0"], check=True, stderr=subprocess.DEVNULL
+        )
 
         def diagnose(fit: int, cache: str) -> dict:
             out = str(Path(tmp) / "diagnosis")
             env = dict(os.environ, TOUCHDOWN_XLA_CACHE=cache)
-            return timed([*touchdown, "diagnose", *bags, "--coeffs", calibrated, "--out", out, "--fit", str(fit)], env=env)
+            return timed(
+                [*touchdown, "diagnose", *bags, "--coeffs", calibrated, "--out", out, "--fit", str(fit)], env=env
+            )
 
         cases = {}
         for fit in (3, 0):

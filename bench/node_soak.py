@@ -170,9 +170,12 @@ def main() -> int:
     print(f"\nSoak {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.1f} at the end, {r['duration_s']:.0f} s at {r['rate']:,.0f} samples/s per sample, "
           f"a drop every {r['cycle_seconds']:g} s{', ' + ' '.join(args.param) if args.param else ''}:\n")
-    print("| sent | lost | holes the node saw: bridged gaps (missing) / long gaps / clock jumps | drops / relevitations (cycles sent) | stamp -> published p50 / p99 (ms, "
-          "whole run) | per-period p99 median / worst (ms) | node CPU (%) | RSS after warm-up, first / last tenth "
-          "(MiB) | RSS drift | RSS max (MiB) |")
+    print(
+        "| sent | lost | holes the node saw: bridged gaps (missing) / long gaps / clock jumps "
+        "| drops / relevitations (cycles sent) | stamp -> published p50 / p99 (ms, "
+        "whole run) | per-period p99 median / worst (ms) | node CPU (%) | RSS after warm-up, first / last tenth "
+        "(MiB) | RSS drift | RSS max (MiB) |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     print(f"| {r['sent']:,} | {r['lost']:,} | {r['gaps']} ({r['missing_samples']}) / {r['long_gaps']} / "
           f"{r['clock_jump_forward']} | {r['drops']} / "

@@ -161,7 +161,8 @@ def publisher_main(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------- orchestrator
 def shut_down(node: subprocess.Popen, executor, peer, context, log) -> None:
-    """Stop the node process (SIGINT, then kill after 10 s), the peer's executor, node and context, and close the log."""
+    """Stop the node process (SIGINT, then kill after 10 s), the peer's executor, node and context, and close
+    the log."""
     import rclpy
 
     if node.poll() is None:
@@ -356,7 +357,8 @@ def table(results: list[dict]) -> str:
         lost = r["sent"] - r["received"]
         behind = "-" if r["catch_up_s"] < 0.6 else f"{r['catch_up_s']:.0f}"
         rows.append(
-            f"| {c.kind.replace('_', '-')} | {c.output_mode.replace('_', '-')} | {c.executor} | {c.signal} | {c.rate:,.0f} | {r['sent']:,} | {lost:,} "
+            f"| {c.kind.replace('_', '-')} | {c.output_mode.replace('_', '-')} | {c.executor} | {c.signal} "
+            f"| {c.rate:,.0f} | {r['sent']:,} | {lost:,} "
             f"| {behind} | {_ms(r['node_p50_ms'])} / {_ms(r['node_p99_ms'])} "
             f"| {_ms(r['p50_ms'])} / {_ms(r['p99_ms'])} "
             f"| {_ms(r['p99_without_onset_ms'])} / {_ms(r['p99_onset_ms'])} "

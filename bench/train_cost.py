@@ -188,13 +188,23 @@ def main() -> None:
         baseline = worker("--worker", "baseline", "--target", str(ours["final_loss"]))
         numpy_eval = worker("--worker", "numpy")
     base_time = baseline["reached_target_seconds"]
-    ratio = f"{base_time / ours['seconds']:.1f}x" if base_time else f"> {baseline['seconds'] / ours['seconds']:.0f}x (not reached)"
+    ratio = (
+        f"{base_time / ours['seconds']:.1f}x"
+        if base_time
+        else f"> {baseline['seconds'] / ours['seconds']:.0f}x (not reached)"
+    )
     print(f"Training the 21-bag campaign to loss {ours['final_loss']:.5g} (from {ours['initial_loss']:.5g}):")
     print("| method | wall time / s | peak memory / MiB | loss reached |")
     print("|---|---:|---:|---:|")
-    print(f"| ours: L-BFGS, AD gradient ({ours['steps']} steps) | {ours['seconds']:.1f} | {ours['peak_rss_MiB']:.0f} | {ours['final_loss']:.5g} |")
+    print(
+        f"| ours: L-BFGS, AD gradient ({ours['steps']} steps) | {ours['seconds']:.1f} | {ours['peak_rss_MiB']:.0f} "
+        f"| {ours['final_loss']:.5g} |"
+    )
     shown = f"{base_time:.1f}" if base_time else f"> {baseline['seconds']:.0f} (budget)"
-    print(f"| scipy least_squares, FD Jacobian, residuals by our jitted JAX filter | {shown} | {baseline['peak_rss_MiB']:.0f} | {baseline['best_loss']:.5g} |")
+    print(
+        f"| scipy least_squares, FD Jacobian, residuals by our jitted JAX filter | {shown} "
+        f"| {baseline['peak_rss_MiB']:.0f} | {baseline['best_loss']:.5g} |"
+    )
     numpy_seconds = numpy_eval["seconds_per_evaluation"] * baseline["evaluations"]
     print(f"| scipy least_squares, FD Jacobian, filterpy EKF residuals (extrapolated: {baseline['evaluations']} "
           f"evaluations x {numpy_eval['seconds_per_evaluation']:.1f} s) | {numpy_seconds:.0f} | - | - |")

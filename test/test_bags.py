@@ -64,7 +64,9 @@ def raw_messages(path, topic):
 
 def _header(stamp_ns: int, frame_id: str):
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return TYPESTORE.types["std_msgs/msg/Header"](stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return TYPESTORE.types["std_msgs/msg/Header"](
+        stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
 
 
 def _covariance6(block: np.ndarray | None) -> np.ndarray:
@@ -79,21 +81,29 @@ def make_message(msgtype: str, stamp_ns: int, value: np.ndarray, covariance: np.
     per-message reference of the numpy encoding."""
     header = _header(stamp_ns, frame_id)
     x, y, z = (float(v) for v in value)
-    Vector3, zero = TYPESTORE.types["geometry_msgs/msg/Vector3"], TYPESTORE.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    Vector3, zero = TYPESTORE.types["geometry_msgs/msg/Vector3"], TYPESTORE.types["geometry_msgs/msg/Vector3"](
+        x=0.0, y=0.0, z=0.0
+    )
     full = cdr.full_type(msgtype)
     if full == MESSAGE_TYPES["PointStamped"]:
         return TYPESTORE.types[full](header=header, point=TYPESTORE.types["geometry_msgs/msg/Point"](x=x, y=y, z=z))
     if full == MESSAGE_TYPES["Vector3Stamped"]:
         return TYPESTORE.types[full](header=header, vector=Vector3(x=x, y=y, z=z))
     if full == MESSAGE_TYPES["WrenchStamped"]:
-        return TYPESTORE.types[full](header=header, wrench=TYPESTORE.types["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero))
+        return TYPESTORE.types[full](
+            header=header, wrench=TYPESTORE.types["geometry_msgs/msg/Wrench"](force=Vector3(x=x, y=y, z=z), torque=zero)
+        )
     if full == MESSAGE_TYPES["TwistWithCovarianceStamped"]:
         twist = TYPESTORE.types["geometry_msgs/msg/Twist"](linear=Vector3(x=x, y=y, z=z), angular=zero)
-        body = TYPESTORE.types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_covariance6(covariance))
+        body = TYPESTORE.types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=_covariance6(covariance)
+        )
         return TYPESTORE.types[full](header=header, twist=body)
     if full == MESSAGE_TYPES["AccelWithCovarianceStamped"]:
         accel = TYPESTORE.types["geometry_msgs/msg/Accel"](linear=Vector3(x=x, y=y, z=z), angular=zero)
-        body = TYPESTORE.types["geometry_msgs/msg/AccelWithCovariance"](accel=accel, covariance=_covariance6(covariance))
+        body = TYPESTORE.types["geometry_msgs/msg/AccelWithCovariance"](
+            accel=accel, covariance=_covariance6(covariance)
+        )
         return TYPESTORE.types[full](header=header, accel=body)
     raise ValueError(f"cannot write message type {msgtype!r}; known: {', '.join(MESSAGE_TYPES)}")
 
@@ -207,7 +217,9 @@ def test_bare_mcap_files_are_read(tmp_path):
         schema = writer.register_schema(bags.DISPLACEMENT_TYPE, "ros2msg", msgdef.encode())
         channel = writer.register_channel("/amb/displacement", "cdr", schema)
         for stamp, row in zip(stamps, xyz):
-            data = TYPESTORE.serialize_cdr(make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE)
+            data = TYPESTORE.serialize_cdr(
+                make_message("PointStamped", stamp, row, None, "amb"), bags.DISPLACEMENT_TYPE
+            )
             writer.add_message(channel, int(stamp), bytes(data), int(stamp))
         writer.finish()
     read = read_displacement(foreign)
@@ -221,7 +233,9 @@ def test_bare_mcap_files_are_read(tmp_path):
 @pytest.mark.parametrize("msgtype", list(MESSAGE_TYPES))
 @pytest.mark.parametrize("frame_id", ["", "a", "abc", "abcd", "sensor_x", "cinq_é", "a" * 13])
 def test_numpy_encoding_equals_rosbags_serialisation(msgtype, frame_id):
-    series = [s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if cdr.full_type(s.msgtype) == MESSAGE_TYPES[msgtype]]
+    series = [
+        s for s in all_types(AWKWARD_STAMPS, AWKWARD, frame_id) if cdr.full_type(s.msgtype) == MESSAGE_TYPES[msgtype]
+    ]
     (s,) = series
     s = TopicSeries(s.topic, s.msgtype, s.stamps_ns, s.values, s.covariance, frame_id)
     rows = bags.encode_series(s)
@@ -291,9 +305,15 @@ def nan_at(rows):
     "spoil, message",
     [
         (nan_at([7, 12]), r"2 sample\(s\) with NaN or inf, first at index 7 \(stamp 1767225600000700000 ns\)"),
-        (lambda s, x: (np.where(np.arange(len(s)) == 9, s[8], s), x), r"1 duplicate and 0 decreasing, first at index 9"),
+        (
+            lambda s, x: (np.where(np.arange(len(s)) == 9, s[8], s), x),
+            r"1 duplicate and 0 decreasing, first at index 9",
+        ),
         (lambda s, x: (s, x * 1e3), r"20 sample\(s\) beyond 0.01 m .*first at index 0\): looks like millimetres"),
-        (lambda s, x: (s, np.where(np.arange(len(x))[:, None] == 4, 0.25, x)), r"1 sample\(s\) beyond .*index 4.*millimetres"),
+        (
+            lambda s, x: (s, np.where(np.arange(len(x))[:, None] == 4, 0.25, x)),
+            r"1 sample\(s\) beyond .*index 4.*millimetres",
+        ),
     ],
     ids=["nan", "duplicate", "millimetres", "one millimetre sample"],
 )
@@ -310,7 +330,9 @@ def test_header_stamps_out_of_order_are_named(tmp_path):
     """Logged in arrival order (log time increasing) with header stamps reversed or swapped."""
     stamps, xyz = displacement(10)
     reversed_path = record(tmp_path / "reversed", stamps[::-1], xyz, log_times=stamps)
-    with pytest.raises(BagError, match=r"0 duplicate and 9 decreasing, first at index 1 \(stamp 1767225600000800000 ns after"):
+    with pytest.raises(
+        BagError, match=r"0 duplicate and 9 decreasing, first at index 1 \(stamp 1767225600000800000 ns after"
+    ):
         read_displacement(reversed_path)
     headers = stamps.copy()
     headers[[5, 6]] = headers[[6, 5]]
@@ -335,9 +357,15 @@ def test_several_problems_are_all_reported():
 def test_wrong_type_missing_and_empty_topics(tmp_path):
     stamps, xyz = displacement(5)
     wrong = bag_with(tmp_path, stamps, xyz, msgtype="Vector3Stamped")
-    with pytest.raises(BagError, match=rf"^{wrong}: topic /amb/displacement has type geometry_msgs/msg/Vector3Stamped, expected .*PointStamped"):
+    with pytest.raises(
+        BagError,
+        match=rf"^{wrong}: topic /amb/displacement has type geometry_msgs/msg/Vector3Stamped, expected .*PointStamped",
+    ):
         read_displacement(wrong)
-    with pytest.raises(BagError, match=rf"^{wrong}: no topic /other; the bag has: /amb/displacement \(geometry_msgs/msg/Vector3Stamped\)"):
+    with pytest.raises(
+        BagError,
+        match=rf"^{wrong}: no topic /other; the bag has: /amb/displacement \(geometry_msgs/msg/Vector3Stamped\)",
+    ):
         read_displacement(wrong, topic="/other")
     with pytest.raises(BagError, match="has type .*Vector3Stamped, expected .*WrenchStamped"):
         read_vector_topic(wrong, "/amb/displacement", "WrenchStamped")
@@ -351,7 +379,11 @@ def test_unsupported_message_type_is_named(tmp_path):
     path = tmp_path / "string"
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/amb/displacement", "std_msgs/msg/String", typestore=TYPESTORE)
-        writer.write(connection, 1, TYPESTORE.serialize_cdr(TYPESTORE.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
+        writer.write(
+            connection,
+            1,
+            TYPESTORE.serialize_cdr(TYPESTORE.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"),
+        )
     with pytest.raises(BagError, match="has type std_msgs/msg/String, not a stamped 3-vector type"):
         read_vector_topic(path, "/amb/displacement")
 
@@ -375,7 +407,9 @@ def test_corrupt_truncated_and_missing_files(tmp_path):
     empty_file.write_bytes(b"")
     for bad in (truncated, truncated_in_bag, garbage, not_a_bag, empty_file):
         for read in (read_displacement, lambda p: read_vector_topic(p, "/x"), read_truth, list_topics):
-            with pytest.raises(BagError, match=r"cannot read bag \(not a rosbag2/MCAP bag, or truncated or corrupt\)") as error:
+            with pytest.raises(
+                BagError, match=r"cannot read bag \(not a rosbag2/MCAP bag, or truncated or corrupt\)"
+            ) as error:
                 read(bad)
             assert str(error.value).startswith(f"{bad}: ")
     with pytest.raises(BagError, match=r"nothing_here: no such bag"):
@@ -395,7 +429,9 @@ def truth_series(stamps, xyz, force_stamps=None):
 
 def test_truth_is_read_and_aligned_to_displacement_stamps(tmp_path):
     stamps, xyz = displacement(10)
-    path = write_bag(tmp_path / "sim", [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz), *truth_series(stamps, xyz)])
+    path = write_bag(
+        tmp_path / "sim", [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz), *truth_series(stamps, xyz)]
+    )
     truth = read_truth(path)
     assert truth.velocity.tobytes() == xyz.tobytes() and truth.contact_force.tobytes() == (3 * xyz).tobytes()
     np.testing.assert_array_equal(truth.stamps_ns, stamps)
@@ -410,12 +446,17 @@ def test_truth_is_read_and_aligned_to_displacement_stamps(tmp_path):
 def test_truth_topics_must_agree(tmp_path):
     stamps, xyz = displacement(10)
     shifted = write_bag(tmp_path / "shifted", truth_series(stamps, xyz, force_stamps=stamps + 1))
-    with pytest.raises(BagError, match=rf"^{shifted}: truth topic /truth/contact_force is not on the stamps of /truth/velocity"):
+    with pytest.raises(
+        BagError, match=rf"^{shifted}: truth topic /truth/contact_force is not on the stamps of /truth/velocity"
+    ):
         read_truth(shifted)
     partial = write_bag(tmp_path / "partial", truth_series(stamps, xyz)[:2])
     with pytest.raises(BagError, match=r"truth topic\(s\) /truth/contact_force missing"):
         read_truth(partial)
-    renamed = write_bag(tmp_path / "renamed", [TopicSeries(f"/sim{s.topic}", s.msgtype, s.stamps_ns, s.values) for s in truth_series(stamps, xyz)])
+    renamed = write_bag(
+        tmp_path / "renamed",
+        [TopicSeries(f"/sim{s.topic}", s.msgtype, s.stamps_ns, s.values) for s in truth_series(stamps, xyz)],
+    )
     assert read_truth(renamed) is None
     truth = read_truth(renamed, "/sim/truth/velocity", "/sim/truth/acceleration", "/sim/truth/contact_force")
     assert truth.acceleration.tobytes() == (2 * xyz).tobytes()
@@ -433,7 +474,10 @@ def test_invalid_series_are_refused_before_anything_is_written(tmp_path):
         (TopicSeries("/x", "PointStamped", stamps * 1.0, xyz), "integer array"),
         (TopicSeries("/x", "PointStamped", stamps - START - 1, xyz), r"stamps must lie in \[0"),
         (TopicSeries("/x", "PointStamped", stamps, xyz, np.zeros((30, 3, 3))), "has none"),
-        (TopicSeries("/x", "TwistWithCovarianceStamped", stamps, xyz, np.zeros((30, 6, 6))), r"covariance must be \(30, 3, 3\)"),
+        (
+            TopicSeries("/x", "TwistWithCovarianceStamped", stamps, xyz, np.zeros((30, 6, 6))),
+            r"covariance must be \(30, 3, 3\)",
+        ),
     ]
     good = TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)
     for bad, message in cases:

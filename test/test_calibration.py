@@ -53,7 +53,9 @@ def test_hertz_force_and_guess_conversion():
     assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(d), jnp.asarray(-1.0))) == 0.0  # never pulls
     assert float(normal_force(law, 3e11, 1.8e12, jnp.asarray(-1e-6), jnp.asarray(rate))) == 0.0  # out of contact
     linear = ContactLaw()
-    assert float(normal_force(linear, 5e8, 3.5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(5e8 * d + 3.5e4 * rate)
+    assert float(normal_force(linear, 5e8, 3.5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(
+        5e8 * d + 3.5e4 * rate
+    )
     # carried to another law, the guess gives the same spring and damping force at the reference deformation
     d_ref = 20e-6
     for target in (law, ContactLaw.of("hertz", 10 / 9)):
@@ -114,7 +116,22 @@ def trained_rig(request, tmp_path_factory):
     rig = write_rig_yaml(v, out / "bags", overwrite=True)
     coeffs = out / "c.yaml"
     assert main(["train", *map(str, bags[:3]), "--config", str(rig), "-o", str(coeffs)]) == 0
-    assert main(["estimate", str(bags[3]), "--config", str(rig), "--coeffs", str(coeffs), "-o", str(out / "est"), "--no-figures"]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                str(bags[3]),
+                "--config",
+                str(rig),
+                "--coeffs",
+                str(coeffs),
+                "-o",
+                str(out / "est"),
+                "--no-figures",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((out / "est" / "summary.json").read_text())
     return v, rig, coeffs, summary
 
@@ -153,7 +170,9 @@ def test_training_refuses_bags_without_touchdown_and_writes_nothing(tmp_path, so
     levitating = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
     out = tmp_path / "c.yaml"
     # a levitated-only bag: cut the record before the drop by a huge detection threshold
-    code = main(["train", str(levitating[0]), "--config", str(rig), "-p", "drop_detection.threshold:=0.01", "-o", str(out)])
+    code = main(
+        ["train", str(levitating[0]), "--config", str(rig), "-p", "drop_detection.threshold:=0.01", "-o", str(out)]
+    )
     assert code == EXIT_BAD_INPUT and not out.exists()
     assert not list(tmp_path.glob("c.yaml*"))
 
@@ -165,7 +184,9 @@ def test_training_that_cannot_converge_says_what_to_change(tmp_path, soft_rig, c
     code = main(["train", str(bags[0]), "--config", str(rig), "-p", "training.calibration_steps:=2", "-o", str(out)])
     assert code == EXIT_BAD_INPUT and not out.exists()
     message = capsys.readouterr().err
-    assert "did not converge in 2 steps" in message and "training.calibration_steps" in message and str(bags[0]) in message
+    assert (
+        "did not converge in 2 steps" in message and "training.calibration_steps" in message and str(bags[0]) in message
+    )
 
 
 def test_a_guess_that_makes_the_filter_diverge_names_the_bag(tmp_path, soft_rig, capsys):

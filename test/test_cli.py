@@ -55,7 +55,9 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
 
     out = estimate_dir if answer == "smoothed" else filtered_dir
     estimate = exp_11_estimate.estimate
-    chosen, other = (estimate.smoothed, estimate.filtered) if answer == "smoothed" else (estimate.filtered, estimate.smoothed)
+    chosen, other = (
+        (estimate.smoothed, estimate.filtered) if answer == "smoothed" else (estimate.filtered, estimate.smoothed)
+    )
     bag = out / "exp_11_estimate"
 
     velocity = read_vector_topic(bag, "/touchdown/velocity")
@@ -78,12 +80,16 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     (summary,) = document["bags"].values()
     assert summary["estimate"] == answer
     assert summary["peak_axial_force_N"] == pytest.approx(float(np.max(chosen.F_z)), rel=1e-12)
-    assert summary["rmse_displacement_m"] == pytest.approx(rmse(chosen.state[:, :3], estimate.measured).tolist(), rel=1e-12)
+    assert summary["rmse_displacement_m"] == pytest.approx(
+        rmse(chosen.state[:, :3], estimate.measured).tolist(), rel=1e-12
+    )
     truth = exp_11_estimate.truth
     assert summary["truth"]["peak_axial_force_error"] == pytest.approx(
         relative_peak_error(chosen.F_z, truth.contact_force[:, 2]), rel=1e-12
     )
-    assert summary["truth"]["rmse_velocity_mps"] == pytest.approx(rmse(chosen.state[:, 4:], truth.velocity).tolist(), rel=1e-12)
+    assert summary["truth"]["rmse_velocity_mps"] == pytest.approx(
+        rmse(chosen.state[:, 4:], truth.velocity).tolist(), rel=1e-12
+    )
     assert summary["truth"]["rmse_velocity_smoothed_mps"] == pytest.approx(
         rmse(estimate.smoothed.state[:, 4:], truth.velocity).tolist(), rel=1e-12
     )
@@ -124,8 +130,13 @@ def test_simulated_bag_carries_displacement_and_truth(drop_bags):
 
 def test_estimate_writes_bag_summary_and_figures(estimate_dir):
     out_bag = estimate_dir / "exp_11_estimate"
-    for topic in ("/touchdown/velocity", "/touchdown/acceleration", "/touchdown/contact_force", "/touchdown/displacement",
-                  "/touchdown/contact_force_std"):
+    for topic in (
+        "/touchdown/velocity",
+        "/touchdown/acceleration",
+        "/touchdown/contact_force",
+        "/touchdown/displacement",
+        "/touchdown/contact_force_std",
+    ):
         series = read_vector_topic(out_bag, topic)
         assert series is not None and len(series.stamps_ns) > 1400, topic
     summary = json.loads((estimate_dir / "summary.json").read_text())
@@ -180,7 +191,21 @@ def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
     other_rig.write_text(
         (CONFIG.source and open(CONFIG.source).read()).replace("mass: 240.0", "mass: 250.0")
     )
-    assert main(["estimate", str(drop_bags / "exp_01"), "--config", str(other_rig), "--coeffs", str(coeffs), "-o", str(tmp_path / "f")]) == 3
+    assert (
+        main(
+            [
+                "estimate",
+                str(drop_bags / "exp_01"),
+                "--config",
+                str(other_rig),
+                "--coeffs",
+                str(coeffs),
+                "-o",
+                str(tmp_path / "f"),
+            ]
+        )
+        == 3
+    )
 
 
 def test_quick_demo_writes_bag_estimate_and_figures(tmp_path):

@@ -52,7 +52,9 @@ def test_file_carries_its_calibration(tmp_path):
         CONFIG.nominal._replace(k_R=3.0e11, c_Z=1.5e12),
         ContactLaw.of("hertz", 1.5),
         CONFIG.kernel._replace(scale_R=np.array([7e-6, 0.02]), T_Z=np.asarray(CONFIG.kernel.T_Z) + 0.5),
-        CONFIG.noise._replace(measurement=np.array([1e-12, 2e-12, 3e-12]), process=np.asarray(CONFIG.noise.process) * 3),
+        CONFIG.noise._replace(
+            measurement=np.array([1e-12, 2e-12, 3e-12]), process=np.asarray(CONFIG.noise.process) * 3
+        ),
     )
     path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
     other_guess = load_config(overrides={"contact.k_R": 5.0e8, "kernel.width": 2.0, "filter.measurement_noise": 9e-6})

@@ -64,7 +64,12 @@ def test_fingerprint_follows_the_rig_not_the_guesses(tmp_path):
     """A coefficient file carries its own calibrated contact constants, kernel and noise: the
     YAML's guesses of those do not tie it; the rotor and the sample period do."""
     base = load_config()
-    for same in ({"topics.velocity": "/v"}, {"contact.k_Z": 1.0}, {"kernel.width": 2.0}, {"filter.measurement_noise": 1e-6}):
+    for same in (
+        {"topics.velocity": "/v"},
+        {"contact.k_Z": 1.0},
+        {"kernel.width": 2.0},
+        {"filter.measurement_noise": 1e-6},
+    ):
         assert load_config(overrides=same).fingerprint() == base.fingerprint(), same
     for other in ({"rig.mass": 200.0}, {"rig.radial_clearance": 0.3e-3}, {"sensor.sample_period": 2e-4}):
         assert load_config(overrides=other).fingerprint() != base.fingerprint(), other
@@ -79,7 +84,9 @@ def test_contact_law_and_training_settings(tmp_path):
         load_config(overrides={"contact.law": "spring"})
     with pytest.raises(ConfigError, match="linear contact law has exponent 1"):
         load_config(overrides={"contact.exponent": 1.5})
-    settings = load_config(overrides={"training.contact_laws": ["hertz:1.5", "linear"], "training.loss": "one_step"}).training
+    settings = load_config(
+        overrides={"training.contact_laws": ["hertz:1.5", "linear"], "training.loss": "one_step"}
+    ).training
     assert [law.label for law in settings.contact_laws] == ["hertz n=1.5", "linear"] and settings.loss == "one_step"
     assert load_config(overrides={"training.contact_laws": []}).training.contact_laws == (load_config().law,)
     with pytest.raises(ConfigError, match="training.contact_laws"):
@@ -96,7 +103,9 @@ def test_deep_shared_memory_profile_is_a_fast_dds_profile():
     path = reference_rig_path().parent / "fastdds_deep_shm.xml"
     ns = {"dds": "http://www.eprosima.com"}
     root = ET.parse(path).getroot()
-    shm = [d for d in root.iterfind(".//dds:transport_descriptor", ns) if d.findtext("dds:type", namespaces=ns) == "SHM"]
+    shm = [
+        d for d in root.iterfind(".//dds:transport_descriptor", ns) if d.findtext("dds:type", namespaces=ns) == "SHM"
+    ]
     assert len(shm) == 1 and int(shm[0].findtext("dds:port_queue_capacity", namespaces=ns)) > 512
     participant = root.find(".//dds:participant", ns)
     assert participant.get("is_default_profile") == "true"

@@ -150,7 +150,8 @@ def test_ad_jacobian_matches_central_differences(case):
         step = np.zeros(7)
         step[j] = scales[j]
         J_fd[:, j] = (
-            np.asarray(rk4_step(model, jnp.asarray(xi + step), h)) - np.asarray(rk4_step(model, jnp.asarray(xi - step), h))
+            np.asarray(rk4_step(model, jnp.asarray(xi + step), h))
+            - np.asarray(rk4_step(model, jnp.asarray(xi - step), h))
         ) / (2 * scales[j])
     np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
     assert not np.allclose(J, np.eye(7))
@@ -212,7 +213,9 @@ def test_eq16_chain_rule_equals_jacfwd_of_f(case):
     xi = jnp.array(CASES[case])
     value, Phi = step_with_jacobian(model, xi, 1e-4)
     np.testing.assert_array_equal(np.asarray(value), np.asarray(rk4_step(model, xi, 1e-4)))
-    np.testing.assert_allclose(np.asarray(Phi), np.asarray(transition_jacobian(model, xi, 1e-4)), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(Phi), np.asarray(transition_jacobian(model, xi, 1e-4)), rtol=1e-12, atol=1e-15
+    )
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -228,7 +231,9 @@ def test_predict_with_rate_is_predict_plus_phi_and_its_jacobian(case):
     # phi evaluated inside the compiled stage loop: equal to a direct call to round-off (XLA fuses differently)
     np.testing.assert_allclose(np.asarray(rate), np.asarray(phi(model, belief.mean)), rtol=1e-14, atol=0)
     J = jax.jacfwd(lambda s: phi(model, s))(belief.mean)
-    np.testing.assert_allclose(np.asarray(rate_jacobian), np.asarray(J), rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(J))))
+    np.testing.assert_allclose(
+        np.asarray(rate_jacobian), np.asarray(J), rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(J)))
+    )
 
 
 def test_rk4_converges_with_fourth_order():
@@ -292,7 +297,9 @@ def test_ekf_equals_independent_linear_kalman_filter():
         means.append(x)
         x, P = Ad @ x + bd, Ad @ P @ Ad.T + Q
     noise = FilterNoise(np.diag(Q), np.diag(R), np.array([1e-10, 1e-10, 1e-10, 1.0, 1e-4, 1e-4, 1e-4]))
-    out = ekf(model, noise, h, Belief(jnp.array([0, 0, -3.5e-4, 0, 0, 0, 0.0]), jnp.diag(noise.initial)), jnp.asarray(etas))
+    out = ekf(
+        model, noise, h, Belief(jnp.array([0, 0, -3.5e-4, 0, 0, 0, 0.0]), jnp.diag(noise.initial)), jnp.asarray(etas)
+    )
     means = np.array(means)
     np.testing.assert_allclose(np.asarray(out.filtered.mean)[:, :3], means[:, :3], rtol=0, atol=1e-13)
     np.testing.assert_allclose(np.asarray(out.filtered.mean)[:, 4:], means[:, 4:], rtol=0, atol=1e-10)

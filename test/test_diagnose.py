@@ -114,13 +114,18 @@ def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, 
 
     calibrated = _calibrated(bags, tmp_path / "calibrated.yaml")
     coeffs = tmp_path / "with_load.yaml"
-    code = main(["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--duration", "0.05"])
+    code = main(
+        ["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--duration", "0.05"]
+    )
     assert code == 0
     fitted = load_coefficients(coeffs, load_config()).effects.values()["axial_load"]["force"]
     assert abs(fitted - mean_load) < 0.1 * mean_load, fitted
 
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)]) == 0
+    assert (
+        main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)])
+        == 0
+    )
     document = _diagnosis(out)
     before, after = document["models"]
     assert (before["label"], after["label"]) == ("before", "after")
@@ -172,7 +177,10 @@ def test_thrust_is_unexplained_and_a_user_effect_makes_the_error_fall(thrust_bag
     amplitude = float(np.hypot(fitted["a"], fitted["b"]))
 
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)]) == 0
+    assert (
+        main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)])
+        == 0
+    )
     document = _diagnosis(out)
     before = document["models"][0]
     assert not before["verdict"]["explained"], before["verdict"]["text"]
@@ -199,14 +207,21 @@ def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_
     assert all(1500.0 < f < 2500.0 for f in loads)
     calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    assert (
+        main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    )
     verdict = _diagnosis(out)["models"][0]["verdict"]
     assert verdict["method"] == "fitted" and verdict["explained"] and verdict["best"] == "axial_load", verdict["text"]
     first, second = verdict["candidates"][:2]
-    assert first["candidate"] == "axial_load" and first["fitted"] and second["fitted"], [c["candidate"] for c in verdict["candidates"]]
+    assert first["candidate"] == "axial_load" and first["fitted"] and second["fitted"], [
+        c["candidate"] for c in verdict["candidates"]
+    ]
     # better than no candidate with its parameter counted, and on the held-out samples
     assert first["criterion"] < 0.0 and first["held_out_nll_fall"] > 0.0 and first["k_step_fall"] > 0.2, first
-    assert verdict["margin_to_second"] == pytest.approx(second["criterion"] - first["criterion"]) and verdict["margin_to_second"] > 0
+    assert (
+        verdict["margin_to_second"] == pytest.approx(second["criterion"] - first["criterion"])
+        and verdict["margin_to_second"] > 0
+    )
     assert first["k_step_fall_by_phase"]["free flight"] > 0.5  # a load acts in free flight too
 
     force = first["parameters"]["force"]
@@ -232,7 +247,9 @@ def test_a_hidden_thrust_no_candidate_models_stays_unexplained_on_a_family_rig(f
     assert all(t.axial_thrust == 500.0 and t.axial_load == 0.0 for t in truths)
     calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
     out = tmp_path / "diagnosis"
-    assert main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    assert (
+        main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    )
     model = _diagnosis(out)["models"][0]
     verdict = model["verdict"]
     assert verdict["method"] == "fitted" and not verdict["explained"], verdict["text"]

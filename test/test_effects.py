@@ -130,7 +130,9 @@ def test_trainer_fits_an_effect_parameter_only_where_the_bag_condition_switches_
 
 
 def test_gates_follow_the_recorded_conditions():
-    config = load_config(overrides={"effects.active": ["axial_load", "brake_decay"], "effects.when.axial_load": "axial_load"})
+    config = load_config(
+        overrides={"effects.active": ["axial_load", "brake_decay"], "effects.when.axial_load": "axial_load"}
+    )
     effects = config.effects
     assert fx.gates_for(effects, {"axial_load": "true"}) == (1.0, 1.0)
     assert fx.gates_for(effects, {"axial_load": "false"}) == (0.0, 1.0)

@@ -334,7 +334,8 @@ def fifo_allowed() -> bool:
 
 
 def assert_recorded_estimates(bag: Path, estimate, source: str) -> None:
-    """The /touchdown/* topics recorded in `bag` equal the offline filtered estimate (stamps exactly, values to 1e-9)."""
+    """The /touchdown/* topics recorded in `bag` equal the offline filtered estimate (stamps exactly, values to
+    1e-9)."""
     topics = estimate_topics(estimate, CONFIG, FILTERED)
     assert CONFIG.topics.contact_force_std in [series.topic for series in topics]
     for series in topics:
@@ -364,8 +365,13 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
                                       QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
         peer.wait_ready(node)
         record = ["--record", str(recorded)] if output_mode == "per_sample" else []
-        replay = subprocess.run([sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), *record, "--timeout", "30"],
-                                env=ros_env(d), capture_output=True, text=True, timeout=240)
+        replay = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), *record, "--timeout", "30"],
+            env=ros_env(d),
+            capture_output=True,
+            text=True,
+            timeout=240,
+        )
         assert replay.returncode == 0, f"{replay.stdout}\n{replay.stderr}\nnode:\n{node.log()}"
         n_samples = int(expected.onset_index + len(expected.stamps_ns))
         assert peer.wait_for(lambda: peer.count("received") == n_samples, 20), (peer.latest.get(INPUT), node.log())
@@ -386,8 +392,13 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
         assert_recorded_estimates(recorded, expected, source)
         return
     columns = np.concatenate([messages.cloud_columns(c, messages.BATCH_OUTPUT_FIELDS) for c in clouds])
-    stamps = np.concatenate([messages.stamp_ns_of(c.header.stamp) + np.rint(messages.cloud_columns(c, ("t",))[:, 0] * 1e9)
-                             .astype(np.int64) for c in clouds])
+    stamps = np.concatenate(
+        [
+            messages.stamp_ns_of(c.header.stamp)
+            + np.rint(messages.cloud_columns(c, ("t",))[:, 0] * 1e9).astype(np.int64)
+            for c in clouds
+        ]
+    )
     np.testing.assert_array_equal(stamps, expected.stamps_ns)
     field = {name: i for i, name in enumerate(messages.BATCH_OUTPUT_FIELDS)}
     filtered = expected.filtered

@@ -27,10 +27,18 @@ def test_candidates_join_the_model_switched_by_their_gates():
 
 
 def test_coordinates_name_each_free_entry_in_the_flattening_order():
-    effects = library_effects(["magnetic_stiffness", "axial_load"], {"magnetic_stiffness": {"k_radial": 3.0, "k_axial": 4.0}})
+    effects = library_effects(
+        ["magnetic_stiffness", "axial_load"], {"magnetic_stiffness": {"k_radial": 3.0, "k_axial": 4.0}}
+    )
     start = Stage1(jnp.arange(6.0), jnp.array([10.0, 11.0]), effects)
     coordinates = Coordinates(start, stage1_flags(effects, True, fitted_effects=["magnetic_stiffness"]))
-    assert coordinates.names == [*PARAMETER_NAMES, "q_radial", "q_axial", "magnetic_stiffness.k_axial", "magnetic_stiffness.k_radial"]
+    assert coordinates.names == [
+        *PARAMETER_NAMES,
+        "q_radial",
+        "q_axial",
+        "magnetic_stiffness.k_axial",
+        "magnetic_stiffness.k_radial",
+    ]
     x = coordinates.initial()
     np.testing.assert_array_equal(x, [0, 1, 2, 3, 4, 5, 10, 11, 4, 3])
     theta = coordinates.theta(x + 1.0)

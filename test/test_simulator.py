@@ -318,7 +318,11 @@ def test_features_of_a_synthetic_record():
         omega_ring=zeros,
     )
     f = drop_features(record)
-    assert [round(i.peak) for i in f.impacts] == [round(F_z[30:40].max()), round(F_z[70:78].max()), round(F_z[110:115].max())]
+    assert [round(i.peak) for i in f.impacts] == [
+        round(F_z[30:40].max()),
+        round(F_z[70:78].max()),
+        round(F_z[110:115].max()),
+    ]
     assert [i.start for i in f.impacts] == pytest.approx([t[30], t[70], t[110]])
     assert f.first_radial_contact == pytest.approx(t[100])
     assert f.bounces_before_radial == 2

@@ -354,5 +354,7 @@ def test_importing_the_core_sets_the_xla_options_and_keeps_a_users_own():
     raised = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
     assert raised.stdout.strip() == with_host_devices(with_small_loop_flag(""), usable_cores())
     own = f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024 {HOST_DEVICES_OPTION}=1"
-    kept = subprocess.run([sys.executable, "-c", show], env=dict(env, XLA_FLAGS=own), capture_output=True, text=True, check=True)
+    kept = subprocess.run(
+        [sys.executable, "-c", show], env=dict(env, XLA_FLAGS=own), capture_output=True, text=True, check=True
+    )
     assert kept.stdout.strip() == own

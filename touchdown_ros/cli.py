@@ -67,9 +67,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.variant:
         v = variant(args.variant)
         if args.campaign:
-            raise ValueError("--campaign is Table 1 of the reference rig; with --variant pick drops with --experiment N...")
+            raise ValueError(
+                "--campaign is Table 1 of the reference rig; with --variant pick drops with --experiment N..."
+            )
         if args.config is not None or args.param:
-            raise ValueError("--variant brings its own rig (the reference rig with its overrides); drop --config and -p")
+            raise ValueError(
+                "--variant brings its own rig (the reference rig with its overrides); drop --config and -p"
+            )
         paths = _commands().simulate_variant(v, args.out, args.experiment, args.seed, args.overwrite)
         print(f"wrote {len(paths)} bag(s) of rig variant {v.name} ({v.description}) and its {RIG_FILE} to {args.out}")
         return 0
@@ -121,14 +125,19 @@ def _trained(outcome, bags: int, out: Path) -> None:
         print(
             f"stage 1 ({'converged' if calibration.convergence.converged else 'NOT converged'}, "
             f"{calibration.convergence.steps} steps): {outcome.config.law.label}, "
-            + ", ".join(f"{k} {v:.4g} (+-{100 * calibration.relative_sd[k]:.0f} %)" for k, v in nominal._asdict().items())
+            + ", ".join(
+                f"{k} {v:.4g} (+-{100 * calibration.relative_sd[k]:.0f} %)" for k, v in nominal._asdict().items()
+            )
             + (f"; held by the prior: {', '.join(calibration.held_by_prior)}" if calibration.held_by_prior else "")
         )
     converged = pkbkr.convergence is not None and pkbkr.convergence.converged
     kept = pkbkr.convergence.kept_step if pkbkr.convergence is not None else None
-    kept_note = "" if kept is None else (
-        f", kept step {kept} by the held-out error" if kept else ", no step lowered the held-out error: PKBKR alpha = 0 kept"
-    )
+    kept_note = ""
+    if kept is not None:
+        kept_note = (
+            f", kept step {kept} by the held-out error" if kept
+            else ", no step lowered the held-out error: PKBKR alpha = 0 kept"
+        )
     print(
         f"stage 2 ({'converged' if converged else 'NOT converged'}, {pkbkr.steps} steps{kept_note}): loss "
         f"{pkbkr.initial_loss:.6g} -> {pkbkr.final_loss:.6g}; mean NIS per bag "
@@ -182,7 +191,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not args.quick:
         trained = config if args.paper_model else load_config(args.config, {**overrides, **DEMO_EFFECTS})
         coeffs = out / "coefficients.yaml"
-        _trained(commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs)
+        _trained(
+            commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs
+        )
         commands.evaluate_bags(trained, all_bags, coeffs, out / "evaluation", cv_steps=args.cv_steps, example="exp_11")
         _evaluated(out / "evaluation")
     commands.estimate_bags(config, [bags / "exp_11"], out / "estimate", coeffs, overwrite=True)
@@ -194,7 +205,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="touchdown", description="AMB rotor touchdown: simulate drop tests, estimate velocity, acceleration, force."
+        prog="touchdown",
+        description="AMB rotor touchdown: simulate drop tests, estimate velocity, acceleration, force.",
     )
     parser.add_argument("--version", action="version", version=f"touchdown_ros {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -208,9 +220,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="experiment number(s) of Table 1, or with --variant of the variant's drops (1, 2, ...)",
     )
     p.add_argument(
-        "--variant", metavar="NAME",
+        "--variant",
+        metavar="NAME",
         help="a rig of the family that differs from the reference rig (touchdown_ros.sim.family): "
-        "bags NAME_NN (default: its 3 drops) and the variant's rig.yaml in --out; one of: " + ", ".join(variant_names()),
+        "bags NAME_NN (default: its 3 drops) and the variant's rig.yaml in --out; one of: "
+        + ", ".join(variant_names()),
     )
     p.add_argument("--seed", type=int, default=0, help="base random seed (experiment N uses seed + N)")
     p.add_argument("-o", "--out", type=Path, required=True, help="directory for the bags exp_NN/ (or NAME_NN/)")
@@ -235,7 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config(p)
     p.add_argument("bags", type=Path, nargs="+", metavar="BAG", help="rosbag2 directory or .mcap file")
     p.add_argument("-o", "--out", type=Path, required=True, help="coefficient file to write (YAML)")
-    p.add_argument("--lambda", dest="regularisation", type=float, help="eq. 18 lambda (default: training.regularisation)")
+    p.add_argument(
+        "--lambda", dest="regularisation", type=float, help="eq. 18 lambda (default: training.regularisation)"
+    )
     p.add_argument("--init", type=Path, help="warm-start from this coefficient file")
     p.add_argument("--resume", action="store_true", help="continue from OUT.checkpoint of an interrupted run")
     p.add_argument(
@@ -266,10 +282,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", "-o", type=Path, required=True, help="output directory for tables and figures")
     p.add_argument("--k", type=int, default=20, help="samples ahead of the k-step prediction (default 20 = 2 ms)")
     p.add_argument(
-        "--force-walk", type=float, default=30.0, help="random walk of the missing-force states, N per sample (default 30)"
+        "--force-walk",
+        type=float,
+        default=30.0,
+        help="random walk of the missing-force states, N per sample (default 30)",
     )
     p.add_argument(
-        "--threshold", type=float, default=50.0, help="ERR %% below which the missing force is 'unexplained' (default 50)"
+        "--threshold",
+        type=float,
+        default=50.0,
+        help="ERR %% below which the missing force is 'unexplained' (default 50)",
     )
     p.add_argument(
         "--fit", type=int, default=3,
@@ -287,11 +309,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config(p)
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=None, help="cap on stage-2 training steps (default training.pkbkr_steps)")
+    p.add_argument(
+        "--steps", type=int, default=None, help="cap on stage-2 training steps (default training.pkbkr_steps)"
+    )
     p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per leave-one-out fold")
     p.add_argument("--quick", action="store_true", help="only simulate and estimate experiment 11 (constant model)")
     p.add_argument(
-        "--paper-model", action="store_true", help="train the paper's model alone (without the Table 1 axial-load effect)"
+        "--paper-model",
+        action="store_true",
+        help="train the paper's model alone (without the Table 1 axial-load effect)",
     )
     p.set_defaults(run=cmd_demo)
 

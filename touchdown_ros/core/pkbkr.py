@@ -29,7 +29,9 @@ def _learned(f0: Array, Q: Array, alpha: Array) -> Array:
     return jnp.maximum(f0 * (1.0 + Q @ alpha), 0.0)
 
 
-def _parameters(kernel: Kernel, T: Array, scale: Array, nominal: tuple, alpha: Array, deformation: Array, velocity: Array):
+def _parameters(
+    kernel: Kernel, T: Array, scale: Array, nominal: tuple, alpha: Array, deformation: Array, velocity: Array
+):
     Q = gaussian_kernel(normalise(scale, deformation, velocity), T, kernel.width)
     return tuple(_learned(f0, Q, a) for f0, a in zip(nominal, alpha))
 

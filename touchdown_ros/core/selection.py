@@ -163,24 +163,42 @@ class Judged(NamedTuple):
     phase_k_step_fall: dict[str, float]  # the same per contact phase (PHASES)
 
 
-def judge(name: str, fit: tuple[Errors, dict[str, Errors], int], baseline: tuple[Errors, dict[str, Errors], int]) -> Judged:
+def judge(
+    name: str, fit: tuple[Errors, dict[str, Errors], int], baseline: tuple[Errors, dict[str, Errors], int]
+) -> Judged:
     """A candidate's (fitted errors, held-out errors by phase, free parameters) against the baseline's."""
     fitted, held, parameters = fit
     base_fitted, base_held, base_parameters = baseline
     n = fitted.samples
-    criterion = information_criterion(fitted.nll, n, parameters) - information_criterion(base_fitted.nll, n, base_parameters)
-    phases = {p: fall(base_held[p].k_step_norm, held[p].k_step_norm) for p in PHASES if held[p].samples and base_held[p].samples}
-    return Judged(name, criterion, base_held["all"].nll - held["all"].nll, fall(base_held["all"].k_step_norm, held["all"].k_step_norm), phases)
+    criterion = information_criterion(fitted.nll, n, parameters) - information_criterion(
+        base_fitted.nll, n, base_parameters
+    )
+    phases = {
+        p: fall(base_held[p].k_step_norm, held[p].k_step_norm)
+        for p in PHASES
+        if held[p].samples and base_held[p].samples
+    }
+    return Judged(
+        name,
+        criterion,
+        base_held["all"].nll - held["all"].nll,
+        fall(base_held["all"].k_step_norm, held["all"].k_step_norm),
+        phases,
+    )
 
 
 def verdict(
-    judged: Sequence[Judged], min_fall: float = MIN_K_STEP_FALL, max_rise: float = MAX_PHASE_RISE, margin: float = COLLINEAR_MARGIN
+    judged: Sequence[Judged],
+    min_fall: float = MIN_K_STEP_FALL,
+    max_rise: float = MAX_PHASE_RISE,
+    margin: float = COLLINEAR_MARGIN,
 ) -> dict:
     """The missing effect: the candidate with the lowest criterion if it beats the baseline (criterion
     < 0) and its held-out errors fall clearly (NLL lower, k-step lower by `min_fall` and in no contact
-    phase higher by more than `max_rise`); else unexplained. When the runner-up is within `margin` of it, the two are named collinear and the
-    contact phase where their held-out k-step falls differ most decides between them (e.g. free
-    flight, where a constant load acts and a contact effect does not)."""
+    phase higher by more than `max_rise`); else unexplained. When the runner-up is within `margin` of
+    it, the two are named collinear and the contact phase where their held-out k-step falls differ
+    most decides between them (e.g. free flight, where a constant load acts and a contact effect
+    does not)."""
     order = sorted(judged, key=lambda j: j.criterion)
     if not order:
         return {"explained": False, "best": None, "margin_to_second": float("nan"), "collinear": None,
@@ -202,7 +220,9 @@ def verdict(
     best = order[0]
     worst_phase = min(best.phase_k_step_fall, key=best.phase_k_step_fall.get, default=None)
     worst_fall = best.phase_k_step_fall[worst_phase] if worst_phase else 0.0
-    explained = best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall and worst_fall >= -max_rise
+    explained = (
+        best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall and worst_fall >= -max_rise
+    )
     if explained:
         ahead = "" if collinear else f", the next {margin_to_second:.1f} behind"
         text = (
@@ -211,16 +231,21 @@ def verdict(
         )
     else:
         why = (
-            f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % (it trades one phase for another)"
+            f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "
+            "(it trades one phase for another)"
             if worst_fall < -max_rise
             else f"lowers the held-out k-step error by {100 * best.k_step_fall:.0f} % (< {100 * min_fall:.0f} %, "
             f"or the NLL or the criterion does not fall)"
         )
-        text = f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {why}; see the residual's signature"
+        text = (
+            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {why}; "
+            "see the residual's signature"
+        )
     if collinear and collinear["phase"]:
         falls = collinear["k_step_fall"]
         text += (
-            f"; {collinear['candidates'][1]} explains about as well (criterion margin {collinear['criterion_margin']:.1f}), "
+            f"; {collinear['candidates'][1]} explains about as well "
+            f"(criterion margin {collinear['criterion_margin']:.1f}), "
             f"told apart in {collinear['phase']}, where the held-out k-step error falls "
             + " vs ".join(f"{100 * v:.0f} % ({n})" for n, v in falls.items())
         )

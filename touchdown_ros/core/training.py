@@ -157,7 +157,8 @@ def output_errors(
         )(jax.tree.map(jnp.asarray, model), jax.tree.map(jnp.asarray, noise), batch)
     held = batch.valid & batch.held_out
     held_count = jnp.sum(held)
-    return totals[0] / jnp.sum(batch.valid & ~batch.held_out), jnp.where(held_count > 0, totals[1] / held_count, jnp.nan)
+    fitted = totals[0] / jnp.sum(batch.valid & ~batch.held_out)
+    return fitted, jnp.where(held_count > 0, totals[1] / held_count, jnp.nan)
 
 
 def output_error(

@@ -277,7 +277,11 @@ def read_truth(
     truth is returned on those stamps, NaN where it has no sample with that exact stamp.
     """
     path = Path(path)
-    kinds = {velocity_topic: "Vector3Stamped", acceleration_topic: "Vector3Stamped", contact_force_topic: "WrenchStamped"}
+    kinds = {
+        velocity_topic: "Vector3Stamped",
+        acceleration_topic: "Vector3Stamped",
+        contact_force_topic: "WrenchStamped",
+    }
     _, found = _read_topics(path, kinds, {t: MESSAGE_TYPES[k] for t, k in kinds.items()})
     if not found:
         return None
@@ -415,4 +419,6 @@ def read_conditions(path: str | Path) -> dict[str, str]:
         custom = metadata["rosbag2_bagfile_information"].get("custom_data") or {}
     except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as error:
         raise BagError(f"{path}: metadata.yaml is unreadable: {error}") from None
-    return {str(k).removeprefix(CONDITION_PREFIX): str(v) for k, v in custom.items() if str(k).startswith(CONDITION_PREFIX)}
+    return {
+        str(k).removeprefix(CONDITION_PREFIX): str(v) for k, v in custom.items() if str(k).startswith(CONDITION_PREFIX)
+    }

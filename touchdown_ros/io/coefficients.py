@@ -16,7 +16,16 @@ import yaml
 from touchdown_ros import __version__
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.effects import resolve as resolve_effect
-from touchdown_ros.core.types import AXIAL_PARAMETERS, RADIAL_PARAMETERS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal
+from touchdown_ros.core.types import (
+    AXIAL_PARAMETERS,
+    RADIAL_PARAMETERS,
+    Coefficients,
+    ContactLaw,
+    FilterNoise,
+    Kernel,
+    Model,
+    Nominal,
+)
 from touchdown_ros.io.config import Config
 
 SCHEMA_VERSION = 2  # 2: the file carries its calibrated contact law and constants, kernel and filter noise
@@ -136,10 +145,9 @@ def save_coefficients(
     document["content_sha256"] = content_sha256(document)
     text = (
         "# touchdown_ros PKBKR coefficients (paper eq. 9, 18). rig_fingerprint ties the file to its rig (model);\n"
-        "# content_sha256 covers contact, kernel, filter, coefficients, effects and training: an edited file is refused.\n"
-    ) + yaml.safe_dump(
-        document, sort_keys=False, width=120
-    )
+        "# content_sha256 covers contact, kernel, filter, coefficients, effects and training: "
+        "an edited file is refused.\n"
+    ) + yaml.safe_dump(document, sort_keys=False, width=120)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
@@ -193,7 +201,10 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
     calibrated = _calibrated_config(path, document, config)
     table = document.get("coefficients")
     kernel = calibrated.kernel
-    sizes = {**{name: len(kernel.T_R) for name in RADIAL_PARAMETERS}, **{name: len(kernel.T_Z) for name in AXIAL_PARAMETERS}}
+    sizes = {
+        **{name: len(kernel.T_R) for name in RADIAL_PARAMETERS},
+        **{name: len(kernel.T_Z) for name in AXIAL_PARAMETERS},
+    }
     rows = {}
     for name, size in sizes.items():
         value = table.get(name) if isinstance(table, dict) else None
@@ -202,7 +213,9 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
         except (TypeError, ValueError):
             row = np.empty(0)
         if row.shape != (size,) or not np.isfinite(row).all():
-            raise CoefficientFileError(f"{path}: coefficients.{name} must be {size} finite numbers (one per kernel centre)")
+            raise CoefficientFileError(
+                f"{path}: coefficients.{name} must be {size} finite numbers (one per kernel centre)"
+            )
         rows[name] = row
     alpha_R = np.stack([rows[name] for name in RADIAL_PARAMETERS])
     alpha_Z = np.stack([rows[name] for name in AXIAL_PARAMETERS])
@@ -210,12 +223,20 @@ def load_coefficients(path: str | Path, config: Config) -> CoefficientFile:
     if not isinstance(training, dict):
         raise CoefficientFileError(f"{path}: 'training' must be a mapping")
     regularisation = training.get("regularisation", 0.0)
-    if isinstance(regularisation, bool) or not isinstance(regularisation, (int, float)) or not np.isfinite(regularisation) or regularisation < 0:
-        raise CoefficientFileError(f"{path}: training.regularisation must be a finite number >= 0, got {regularisation!r}")
+    if (
+        isinstance(regularisation, bool)
+        or not isinstance(regularisation, (int, float))
+        or not np.isfinite(regularisation)
+        or regularisation < 0
+    ):
+        raise CoefficientFileError(
+            f"{path}: training.regularisation must be a finite number >= 0, got {regularisation!r}"
+        )
     effects = _load_effects(path, document.get("effects"))
     if "content_sha256" not in document:
         raise CoefficientFileError(
-            f"{path}: no content_sha256: written by an earlier version or edited; its content cannot be checked (retrain)"
+            f"{path}: no content_sha256: written by an earlier version or edited; "
+            "its content cannot be checked (retrain)"
         )
     if document["content_sha256"] != content_sha256(document):
         raise CoefficientFileError(
@@ -239,7 +260,9 @@ def _contact_units(config: Config) -> str:
     return f"F = d^{n} (k + c d_dot): k_R, k_Z N/m^{n}; c_R, c_Z N s/m^({n}+1); mu, k_ZR 1"
 
 
-def _array(path: Path, document: Mapping[str, Any], key: str, shape: tuple[int | None, ...], positive: bool = False) -> np.ndarray:
+def _array(
+    path: Path, document: Mapping[str, Any], key: str, shape: tuple[int | None, ...], positive: bool = False
+) -> np.ndarray:
     section, _, name = key.partition(".")
     value = (document.get(section) or {}).get(name) if isinstance(document.get(section), dict) else None
     try:
@@ -249,7 +272,9 @@ def _array(path: Path, document: Mapping[str, Any], key: str, shape: tuple[int |
     fits = array.ndim == len(shape) and all(want is None or got == want for got, want in zip(array.shape, shape))
     if not fits or array.size == 0 or not np.isfinite(array).all() or (positive and (array <= 0).any()):
         what = "positive " if positive else ""
-        raise CoefficientFileError(f"{path}: {key} must be {what}finite numbers of shape {tuple('n' if s is None else s for s in shape)}")
+        raise CoefficientFileError(
+            f"{path}: {key} must be {what}finite numbers of shape {tuple('n' if s is None else s for s in shape)}"
+        )
     return array
 
 

@@ -113,8 +113,13 @@ class DiagnosticsState:
         The closed state no longer changes: `statuses()` may read it in another thread.
         """
         self.ended = time.monotonic()
-        return DiagnosticsState(counts_at_start=counts.as_dict(), messages_at_start=messages, malformed_at_start=malformed,
-                                radial_contact=self.radial_contact, axial_contact=self.axial_contact)
+        return DiagnosticsState(
+            counts_at_start=counts.as_dict(),
+            messages_at_start=messages,
+            malformed_at_start=malformed,
+            radial_contact=self.radial_contact,
+            axial_contact=self.axial_contact,
+        )
 
 
 def statuses(

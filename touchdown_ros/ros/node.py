@@ -99,7 +99,10 @@ class EstimatorNode(Node):
         self.batched = node.output_mode in ("batch", "both")
         if self.per_sample:
             self._estimate_publishers = [
-                (self.create_publisher(messages.message_class(topic.msgtype), getattr(topics, topic.name), out_qos), topic)
+                (
+                    self.create_publisher(messages.message_class(topic.msgtype), getattr(topics, topic.name), out_qos),
+                    topic,
+                )
                 for topic in ESTIMATE_TOPICS
             ]
         if self.batched:

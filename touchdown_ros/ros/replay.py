@@ -90,7 +90,9 @@ class Recorder:
         out = []
         for track in self.tracks.values():
             stamps = np.asarray(track.stamps, dtype=np.int64)
-            block = np.asarray(track.values, dtype=np.float64).reshape(len(stamps), messages.float64_count(track.msgtype))
+            block = np.asarray(track.values, dtype=np.float64).reshape(
+                len(stamps), messages.float64_count(track.msgtype)
+            )
             stamps, first = np.unique(stamps, return_index=True)
             vector, covariance = cdr.vector_and_covariance(track.msgtype, block[first])
             out.append(TopicSeries(track.topic, track.msgtype, stamps, vector, covariance, frame_id=track.frame_id))

@@ -38,7 +38,8 @@ class DropFeatures:
         return (
             f"{len(self.impacts)} axial impacts, {self.bounces_before_radial} before radial contact ({first}); "
             f"largest #{self.largest_impact + 1} {self.peak_F_z / 1e3:.1f} kN; peak F_n {self.peak_F_n / 1e3:.1f} kN "
-            f"(ratio {self.force_ratio:.2f}); whirl {self.whirl_direction:+.2f}, clinging {self.radial_contact_share:.2f}"
+            f"(ratio {self.force_ratio:.2f}); whirl {self.whirl_direction:+.2f}, "
+            f"clinging {self.radial_contact_share:.2f}"
         )
 
 

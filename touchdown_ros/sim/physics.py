@@ -76,7 +76,9 @@ class Truth(NamedTuple):
     brake_time_constant: float  # s, brake engagement
     axial_load: float  # N, downward, 0 = no loader
     drop_time: float  # s
-    axial_thrust: float = 0.0  # N, amplitude of a once-per-revolution axial force A cos(theta) (a wobbling thrust collar)
+    axial_thrust: float = (
+        0.0  # N, amplitude of a once-per-revolution axial force A cos(theta) (a wobbling thrust collar)
+    )
     radial_exponent: float = 1.5  # n of the bore contact K d^n, 1
     axial_exponent: float = 1.5  # n of the face contact K d^n, 1
     linear_damping: float = 0.0  # 1.0: Kelvin-Voigt K d^n + C d_dot; 0.0: Hunt-Crossley K d^n (1 + D d_dot)

@@ -67,7 +67,9 @@ def simulate_drop(
     """Simulate one drop test under `condition`; the same (config, condition, seed) gives identical records."""
     params = params or simulator_parameters(config)
     if not np.isfinite(condition.speed_rpm) or condition.speed_rpm < 0.0:
-        raise ValueError(f"experiment {condition.number}: speed_rpm must be finite and >= 0, got {condition.speed_rpm!r}")
+        raise ValueError(
+            f"experiment {condition.number}: speed_rpm must be finite and >= 0, got {condition.speed_rpm!r}"
+        )
     period = config.sample_period
     n_lev = int(round(params.scalars["levitated_time"] / period))
     n_drop = int(round(params.scalars["drop_duration"] / period))
@@ -86,7 +88,9 @@ def simulate_drop(
     acceleration, c = _observe(p, jnp.asarray(t), states)
     states = np.asarray(states)
     if not np.all(np.isfinite(states)):
-        raise FloatingPointError(f"experiment {condition.number}: the simulation diverged; check the simulator constants")
+        raise FloatingPointError(
+            f"experiment {condition.number}: the simulation diverged; check the simulator constants"
+        )
 
     position = states[:, :3]
     gain, offset = (np.array([params.scalars[f"sensor_{error}_{a}"] for a in "xyz"]) for error in ("gain", "offset"))

@@ -161,7 +161,9 @@ def fit_candidates(
         coordinates = Coordinates(problem.start, stage1_flags(problem.effects, True, fitted_effects=fitted_effects))
         batch = problem.gated(chosen)
         objective = problem.objective(coordinates, batch)
-        x, convergence = minimise(objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}", stream)
+        x, convergence = minimise(
+            objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}", stream
+        )
         theta = coordinates.theta(x)
         measures = problem.evaluate(theta, batch)
         if effect is None:
@@ -190,10 +192,14 @@ def fit_candidates(
     for fit in ranked(selection)[: settings.per_bag]:
         chosen, theta = thetas[fit.name]
         for record, bag in enumerate(selection.bags):
-            coordinates = Coordinates(theta, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[fit.name]))
+            coordinates = Coordinates(
+                theta, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[fit.name])
+            )
             batch = problem.gated(chosen, record)
             objective = problem.objective(coordinates, batch)
-            x, _ = minimise(objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}", stream)
+            x, _ = minimise(
+                objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}", stream
+            )
             n_fit = int(np.sum(np.asarray(batch.valid) & ~np.asarray(batch.held_out)))
             sd = _effect_sd(problem, coordinates, objective, x, n_fit, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
@@ -201,18 +207,27 @@ def fit_candidates(
     return selection
 
 
-def _effect_sd(problem: _Problem, coordinates: Coordinates, objective, x: np.ndarray, n_fit: int, name: str) -> dict[str, float]:
+def _effect_sd(
+    problem: _Problem, coordinates: Coordinates, objective, x: np.ndarray, n_fit: int, name: str
+) -> dict[str, float]:
     """Standard errors (physical units) of one effect's fitted parameters from the loss curvature."""
     prior_width = problem.config.training.prior_width
     sd, _ = standard_errors(hessian(objective, x), n_fit, coordinates.prior_sd(prior_width))
     scales = problem.scales.params[problem.effects.names.index(name)]
-    return {n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]] for n, s in zip(coordinates.names, sd) if n.startswith(name + ".")}
+    return {
+        n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]]
+        for n, s in zip(coordinates.names, sd)
+        if n.startswith(name + ".")
+    }
 
 
 def judged(selection: Selection) -> list[Judged]:
     """Every candidate against the baseline, lowest criterion first."""
     base = selection.baseline
-    rows = [judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters)) for f in selection.fits[1:]]
+    rows = [
+        judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters))
+        for f in selection.fits[1:]
+    ]
     return sorted(rows, key=lambda j: j.criterion)
 
 

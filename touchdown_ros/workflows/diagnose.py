@@ -223,9 +223,15 @@ def diagnose(
     rows = ranking_rows(ranking, fx.LIBRARY, [b.path.name for b in results])
     verdict = frols_verdict(ranking, rows, settings.threshold)
     if settings.fitted:
-        print(f"[diagnose {label}] fitting the {settings.fitted} best candidates (held-out blocks)", file=stream, flush=True)
+        print(
+            f"[diagnose {label}] fitting the {settings.fitted} best candidates (held-out blocks)",
+            file=stream,
+            flush=True,
+        )
         names = [row["candidate"] for row in rows[: settings.fitted]]
-        selection = fit_candidates(config, estimator.model, load_training_data(config, bags), names, FitSettings(k=settings.k), stream)
+        selection = fit_candidates(
+            config, estimator.model, load_training_data(config, bags), names, FitSettings(k=settings.k), stream
+        )
         verdict = fitted_verdict(verdict, selection)
     missing_signature = signature(
         config.rig,

@@ -36,7 +36,8 @@ def compare_metrics(result: BagEstimate) -> dict[str, Any]:
         "rmse_x_m": None,
         "rmse_prediction_m": rmse(est.predicted_output, est.measured).tolist(),
     }
-    metrics["rmse_x_m"], metrics["rmse_y_m"], metrics["rmse_z_m"] = rmse(est.filtered.state[:, :3], est.measured).tolist()
+    displacement = rmse(est.filtered.state[:, :3], est.measured).tolist()
+    metrics["rmse_x_m"], metrics["rmse_y_m"], metrics["rmse_z_m"] = displacement
     if truth is not None:
         radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(*truth.contact_force[:, :2].T)
         metrics.update(
@@ -91,6 +92,8 @@ def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) 
         constant = estimate_bag(config, path, estimator)
         pkbkr = estimate_bag(config, path, estimator, trained.coeffs, trained.effects)
         results.append(
-            BagComparison(Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)})
+            BagComparison(
+                Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)}
+            )
         )
     return results

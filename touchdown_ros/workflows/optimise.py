@@ -123,7 +123,8 @@ def minimise(
         elapsed = time.perf_counter() - start
         held = watch(step, intermediate_result.x) if held_out else ""
         print(
-            f"[{label} step {step}/<={max_steps}] loss {intermediate_result.fun:.7g}{held}{describe(intermediate_result.x)}  "
+            f"[{label} step {step}/<={max_steps}] loss {intermediate_result.fun:.7g}{held}"
+            f"{describe(intermediate_result.x)}  "
             f"{elapsed:.1f} s elapsed",
             file=stream,
             flush=True,
@@ -134,9 +135,15 @@ def minimise(
     theta0 = np.asarray(theta0, dtype=float)
     initial_loss = fun(theta0)[0]
     watch(0, theta0)
-    print(f"[{label} step 0] loss {initial_loss:.7g} (compiled in {time.perf_counter() - start:.1f} s)", file=stream, flush=True)
+    print(
+        f"[{label} step 0] loss {initial_loss:.7g} (compiled in {time.perf_counter() - start:.1f} s)",
+        file=stream,
+        flush=True,
+    )
     if max_steps == 0:
-        return theta0, Convergence(False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start)
+        return theta0, Convergence(
+            False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start
+        )
     result = scipy.optimize.minimize(
         fun,
         theta0,
@@ -152,7 +159,9 @@ def minimise(
         change = np.max(np.abs(np.diff(recent))) / max(abs(recent[-1]), 1.0)
         if change < 10.0 * tolerance:
             converged = True
-            reason += f" (the line search found no lower loss; the last steps changed it by {change:.1e}: at its noise floor)"
+            reason += (
+                f" (the line search found no lower loss; the last steps changed it by {change:.1e}: at its noise floor)"
+            )
     theta, final_loss, kept_step = np.asarray(result.x), float(result.fun), None
     if best:
         if best.get("stopped"):
@@ -163,13 +172,27 @@ def minimise(
         reason += f"; kept step {kept_step}, the lowest held-out loss"
     steps = len(history)
     convergence = Convergence(
-        converged, reason, steps, initial_loss, final_loss, time.perf_counter() - start, tuple(history), kept_step, tuple(held_out)
+        converged,
+        reason,
+        steps,
+        initial_loss,
+        final_loss,
+        time.perf_counter() - start,
+        tuple(history),
+        kept_step,
+        tuple(held_out),
     )
-    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}", file=stream, flush=True)
+    print(
+        f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}",
+        file=stream,
+        flush=True,
+    )
     return theta, convergence
 
 
-def hessian(objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4) -> np.ndarray:
+def hessian(
+    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4
+) -> np.ndarray:
     """Hessian of a loss at x by central differences of its AD gradient (2 n gradients, no extra
     compilation)."""
     columns = []

@@ -41,7 +41,9 @@ def load_training_data(config: Config, paths: Sequence[str | Path], duration: fl
     for path in paths:
         conditions.append(read_conditions(path))
         series = read_displacement(path, config.topics.displacement)
-        grid = to_grid(series.stamps_ns, series.xyz, config.sample_period, policy=InputPolicy.from_config(config), source=str(path))
+        grid = to_grid(
+            series.stamps_ns, series.xyz, config.sample_period, policy=InputPolicy.from_config(config), source=str(path)
+        )
         onset = config.drop_detector().onset(grid.etas[:, 2])
         if onset is None:
             raise NoDropError(f"{path}: no touchdown found, cannot train on it")

@@ -13,7 +13,14 @@ from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
 from touchdown_ros.core.dynamics import contact_forces, phi, rk4
-from touchdown_ros.core.ekf import Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, with_jacobian
+from touchdown_ros.core.ekf import (
+    Belief,
+    Transition,
+    extended_kalman_filter,
+    model_measurement,
+    rts_smoother,
+    with_jacobian,
+)
 from touchdown_ros.core.types import STATE_SIZE, Model
 
 

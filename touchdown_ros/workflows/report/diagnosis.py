@@ -63,18 +63,34 @@ def _write_csv(diagnoses: Sequence[Diagnosis], out: Path) -> None:
                 for phase, p in [("all", None)] + list(metrics["phases"].items()):
                     for i, axis in enumerate(AXES):
                         if p is None:
-                            k, f, n = metrics["k_step"]["rmse_m"][i], metrics.get("contact_force", {}).get("rmse_N", [None] * 3)[i], metrics["samples"]
+                            k, f, n = (
+                                metrics["k_step"]["rmse_m"][i],
+                                metrics.get("contact_force", {}).get("rmse_N", [None] * 3)[i],
+                                metrics["samples"],
+                            )
                         else:
                             k, f, n = p["k_step_rmse_m"][i], p.get("force_rmse_N", [None] * 3)[i], p["samples"]
                         writer.writerow([d.label, bag, phase, axis, n, k, f])
     with open(out / "ranking.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["model", "rank", "candidate", "err_percent", "parameter", "value", "std", "ci95_low", "ci95_high", "unit"])
+        writer.writerow(
+            ["model", "rank", "candidate", "err_percent", "parameter", "value", "std", "ci95_low", "ci95_high", "unit"]
+        )
         for d in diagnoses:
             for row in d.verdict["candidates"]:
                 for name, p in row["parameters"].items():
                     writer.writerow(
-                        [d.label, row["rank"], row["candidate"], f"{row['err_percent']:.3f}", name, p["value"], p["std"], *p["ci95"], p["unit"]]
+                        [
+                            d.label,
+                            row["rank"],
+                            row["candidate"],
+                            f"{row['err_percent']:.3f}",
+                            name,
+                            p["value"],
+                            p["std"],
+                            *p["ci95"],
+                            p["unit"],
+                        ]
                     )
 
 
@@ -87,7 +103,10 @@ def markdown(document: dict[str, Any]) -> str:
     models = document["models"]
     labels = [m["label"] for m in models]
     s = document["settings"]
-    lines = ["# touchdown diagnose\n", f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n"]
+    lines = [
+        "# touchdown diagnose\n",
+        f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n",
+    ]
     lines += [f"- **{m['label']}**: {m['coefficients']}; effects {m['effects'] or 'none'}" for m in models]
     lines.append("")
 
@@ -115,9 +134,19 @@ def markdown(document: dict[str, Any]) -> str:
             cells = [f"{v:.0f} N" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])
             lines.append(row(f"contact force {axis} RMSE vs truth", cells))
         vals = [m["metrics"]["contact_force"]["rmse_norm_N"] for m in models]
-        lines.append(row("contact force RMSE (norm) vs truth", [f"{v:.0f} N" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])))
+        lines.append(
+            row(
+                "contact force RMSE (norm) vs truth",
+                [f"{v:.0f} N" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else []),
+            )
+        )
     vals = [m["metrics"]["k_step"]["rmse_norm_m"] for m in models]
-    lines.append(row("**k-step RMSE (norm)**", [f"{_um(v)} um" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else [])))
+    lines.append(
+        row(
+            "**k-step RMSE (norm)**",
+            [f"{_um(v)} um" for v in vals] + ([ratio(vals[1], vals[0])] if len(models) == 2 else []),
+        )
+    )
 
     lines += ["", "## k-step RMSE by contact phase (x / y / z, um)", "", head, rule]
     for phase in models[0]["metrics"]["phases"]:
@@ -131,7 +160,10 @@ def markdown(document: dict[str, Any]) -> str:
         lines += ["", "## Contact-force RMSE vs truth by phase (x / y / z, N)", "", head, rule]
         for phase in models[0]["metrics"]["phases"]:
             ps = [m["metrics"]["phases"][phase] for m in models]
-            cells = [" / ".join("-" if v is None or not np.isfinite(v) else f"{v:.0f}" for v in p["force_rmse_N"]) for p in ps]
+            cells = [
+                " / ".join("-" if v is None or not np.isfinite(v) else f"{v:.0f}" for v in p["force_rmse_N"])
+                for p in ps
+            ]
             if len(models) == 2:
                 a, b = (np.linalg.norm(np.nan_to_num(p["force_rmse_N"])) for p in ps[::-1])
                 cells.append(ratio(a, b))
@@ -156,15 +188,25 @@ def markdown(document: dict[str, Any]) -> str:
             ("deformation_xcorr_outside_share", "x-corr with deformation: lags outside"),
         ):
             vals = [m["residual_tests"][axis][key] for m in models]
-            lines.append(row(f"{axis} {title}", [f"{100 * v:.0f} %" for v in vals] + ([""] if len(models) == 2 else [])))
+            lines.append(
+                row(f"{axis} {title}", [f"{100 * v:.0f} %" for v in vals] + ([""] if len(models) == 2 else []))
+            )
 
-    lines += ["", "## Missing force (smoothed disturbance states): mean +- rms of the estimate's std, N", "", head, rule]
+    lines += [
+        "",
+        "## Missing force (smoothed disturbance states): mean +- rms of the estimate's std, N",
+        "",
+        head,
+        rule,
+    ]
     for phase in list(PHASES) + ["all"]:
         cells = []
         for m in models:
             t = m["metrics"]["missing_force"].get(phase)
             cells.append(
-                "-" if t is None else " / ".join(f"{mu:.0f}+-{sd:.0f}" for mu, sd in zip(t["mean_N"], t["std_of_estimate_N"]))
+                "-"
+                if t is None
+                else " / ".join(f"{mu:.0f}+-{sd:.0f}" for mu, sd in zip(t["mean_N"], t["std_of_estimate_N"]))
             )
         if len(models) == 2:
             cells.append("")
@@ -183,7 +225,8 @@ def markdown(document: dict[str, Any]) -> str:
             lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
         lines += [
             f"The model's own PKBKR coefficients (forced first) can absorb {v['forced_err_percent']:.1f} % of the "
-            f"missing-force energy; the ERR below are shares of the rest. FROLS threshold: {v['threshold_percent']:.0f} %.",
+            f"missing-force energy; the ERR below are shares of the rest. "
+            f"FROLS threshold: {v['threshold_percent']:.0f} %.",
             "",
             "| rank | candidate | ERR | parameters (linearised fit, +- 1 std, pooled; per bag) |",
             "|---:|---|---:|---|",
@@ -197,7 +240,12 @@ def markdown(document: dict[str, Any]) -> str:
             )
             lines.append(f"| {c['rank']} | {c['candidate']} | {c['err_percent']:.1f} % | {params} |")
         lines.append("")
-        lines.append("FROLS order: " + ", ".join(f"{o['candidate']} (+{o['err_percent']:.1f} %, {o['cumulative_percent']:.1f} %)" for o in v["order"]))
+        lines.append(
+            "FROLS order: "
+            + ", ".join(
+                f"{o['candidate']} (+{o['err_percent']:.1f} %, {o['cumulative_percent']:.1f} %)" for o in v["order"]
+            )
+        )
         lines += ["", f"Residual signature: {m['signature']['summary']}."]
     if "comparison" in document:
         c = document["comparison"]
@@ -223,7 +271,9 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
     for row in v["candidates"]:
         if not row["fitted"]:
             continue
-        values = "; ".join(f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items())
+        values = "; ".join(
+            f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items()
+        )
         per_bag = "; ".join(
             ", ".join(f"{bag} {value:.4g} +- {p['per_bag_std'][bag]:.2g}" for bag, value in p["per_bag"].items())
             for p in row["parameters"].values()
@@ -233,11 +283,17 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
             f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
             f"{100 * row['k_step_fall']:+.0f} % | {values} | {per_bag or '-'} |"
         )
-    phases = sorted({p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index)
+    phases = sorted(
+        {p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index
+    )
     lines += ["", "Held-out k-step error fall by contact phase:", "", "| candidate | " + " | ".join(phases) + " |",
               "|---|" + "---:|" * len(phases)]
     for row in v["candidates"]:
         if row["fitted"]:
             falls = row["k_step_fall_by_phase"]
-            lines.append(f"| {row['candidate']} | " + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases) + " |")
+            lines.append(
+                f"| {row['candidate']} | "
+                + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases)
+                + " |"
+            )
     return lines

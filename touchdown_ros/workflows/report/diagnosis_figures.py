@@ -35,13 +35,22 @@ def plot_diagnosis(diagnoses, config, out: Path) -> list[Path]:
     has_force = all("force_rmse_N" in d.metrics["phases"][PHASES[0]] for d in diagnoses)
     fig, axes = plt.subplots(1, 2 if has_force else 1, figsize=(12 if has_force else 7, 4), squeeze=False)
     width = 0.8 / (3 * len(diagnoses))
-    for panel, (key, scale, unit) in enumerate((("k_step_rmse_m", 1e6, "um"), ("force_rmse_N", 1.0, "N"))[: 2 if has_force else 1]):
+    for panel, (key, scale, unit) in enumerate(
+        (("k_step_rmse_m", 1e6, "um"), ("force_rmse_N", 1.0, "N"))[: 2 if has_force else 1]
+    ):
         ax = axes[0, panel]
         for j, d in enumerate(diagnoses):
             for i, axis in enumerate(AXES):
                 values = [np.nan_to_num(np.asarray(d.metrics["phases"][p][key], float)[i]) * scale for p in PHASES]
                 offset = (j * 3 + i) * width - 0.4
-                ax.bar(np.arange(4) + offset, values, width, color=colours[j], alpha=0.4 + 0.2 * i, label=f"{d.label} {axis}")
+                ax.bar(
+                    np.arange(4) + offset,
+                    values,
+                    width,
+                    color=colours[j],
+                    alpha=0.4 + 0.2 * i,
+                    label=f"{d.label} {axis}",
+                )
         ax.set_xticks(np.arange(4), PHASES)
         ax.set_ylabel(("k-step RMSE" if panel == 0 else "contact-force RMSE vs truth") + f" / {unit}")
         ax.legend(fontsize=7, ncol=2)
@@ -98,9 +107,21 @@ def plot_diagnosis(diagnoses, config, out: Path) -> list[Path]:
     window = max(1, int(round(0.005 / config.sample_period)))
     for d, b, c in zip(diagnoses, example, colours):
         w = windowed_rms(b.k_step - b.result.estimate.measured, window)
-        axes[0].plot(np.arange(len(w)) * window * config.sample_period, np.linalg.norm(np.nan_to_num(w), axis=1) * 1e6, "o-", color=c, label=d.label)
+        axes[0].plot(
+            np.arange(len(w)) * window * config.sample_period,
+            np.linalg.norm(np.nan_to_num(w), axis=1) * 1e6,
+            "o-",
+            color=c,
+            label=d.label,
+        )
         imp = d.metrics["impacts"]
-        axes[1].plot([m["impact"] for m in imp], [np.linalg.norm(np.nan_to_num(m["k_step_rmse_m"])) * 1e6 for m in imp], "o-", color=c, label=d.label)
+        axes[1].plot(
+            [m["impact"] for m in imp],
+            [np.linalg.norm(np.nan_to_num(m["k_step_rmse_m"])) * 1e6 for m in imp],
+            "o-",
+            color=c,
+            label=d.label,
+        )
     axes[0].set_xlabel("time after drop onset / s")
     axes[0].set_ylabel(f"k-step RMSE per {window * config.sample_period * 1e3:.0f} ms / um")
     axes[1].set_xlabel("impact number (all bags)")

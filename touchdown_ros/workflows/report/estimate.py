@@ -51,7 +51,12 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     force, force_cov = np.asarray(written.force_xyz), np.asarray(written.force_cov)
     panels = [
-        ("axial force F_z", force[:, 2], force_std(force_cov)[:, 2], None if truth is None else truth.contact_force[:, 2]),
+        (
+            "axial force F_z",
+            force[:, 2],
+            force_std(force_cov)[:, 2],
+            None if truth is None else truth.contact_force[:, 2],
+        ),
         (
             "radial force |F_xy|",
             np.hypot(force[:, 0], force[:, 1]),

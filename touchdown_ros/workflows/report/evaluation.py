@@ -124,8 +124,14 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
 
     D_R, V_R = span(np.asarray(kernel.T_R), np.asarray(kernel.scale_R))
     D_Z, V_Z = span(np.asarray(kernel.T_Z), np.asarray(kernel.scale_Z))
-    maps = [(name, D_R, V_R, value) for name, value in zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D_R, V_R))]
-    maps += [(name, D_Z, V_Z, value) for name, value in zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D_Z, V_Z))]
+    maps = [
+        (name, D_R, V_R, value)
+        for name, value in zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D_R, V_R))
+    ]
+    maps += [
+        (name, D_Z, V_Z, value)
+        for name, value in zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D_Z, V_Z))
+    ]
     fig, axes = plt.subplots(2, 3, figsize=(12, 7))
     for ax, (name, D, V, value) in zip(axes.ravel(), maps):
         relative = np.asarray(value) / getattr(nominal, name)
@@ -173,13 +179,16 @@ def write_tables(
             "constant_mean": float(np.mean(np.abs(values["constant"])) * scale),
             "pkbkr_mean": float(np.mean(np.abs(values["pkbkr"])) * scale),
             "pkbkr_max": float(np.max(np.abs(values["pkbkr"])) * scale),
-            "ratio_pkbkr_to_constant": float(np.mean(np.abs(values["pkbkr"])) / max(np.mean(np.abs(values["constant"])), 1e-300)),
+            "ratio_pkbkr_to_constant": float(
+                np.mean(np.abs(values["pkbkr"])) / max(np.mean(np.abs(values["constant"])), 1e-300)
+            ),
         }
     held_out = (
         "leave-one-out: each bag is estimated with PKBKR coefficients retrained without it, warm-started from "
         "these (filtered estimate)"
         if cross_validated
-        else "in-sample (--no-cv): these coefficients on every bag, including the bags they were trained on (filtered estimate)"
+        else "in-sample (--no-cv): these coefficients on every bag, including the bags they were trained on "
+        "(filtered estimate)"
     )
     lines = [
         "# Evaluation: constant model vs PKBKR",
@@ -190,15 +199,23 @@ def write_tables(
         "'worst bag' is the largest absolute value.",
         "",
     ]
-    lines += ["| bag | method | " + " | ".join(label for _, _, label in columns) + " |", "|---|---|" + "---:|" * len(columns)]
+    lines += [
+        "| bag | method | " + " | ".join(label for _, _, label in columns) + " |",
+        "|---|---|" + "---:|" * len(columns),
+    ]
     for c in comparisons:
         for method in METHODS:
             cells = " | ".join(f"{c.metrics[method][k] * s:.3g}" for k, s, _ in columns)
             lines.append(f"| {c.path.name} | {method} | {cells} |")
-    lines += ["", "| figure | constant (mean) | PKBKR (mean) | PKBKR (worst bag) | PKBKR / constant |", "|---|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "| figure | constant (mean) | PKBKR (mean) | PKBKR (worst bag) | PKBKR / constant |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for key, a in aggregate.items():
         lines.append(
-            f"| {a['label']} | {a['constant_mean']:.3g} | {a['pkbkr_mean']:.3g} | {a['pkbkr_max']:.3g} | {a['ratio_pkbkr_to_constant']:.2f} |"
+            f"| {a['label']} | {a['constant_mean']:.3g} | {a['pkbkr_mean']:.3g} | {a['pkbkr_max']:.3g} "
+            f"| {a['ratio_pkbkr_to_constant']:.2f} |"
         )
     (out / "evaluation.md").write_text("\n".join(lines) + "\n")
     return aggregate
