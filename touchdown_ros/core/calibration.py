@@ -94,7 +94,9 @@ def stage1_model_and_noise(
     """The model (constant parameters, alpha = 0) and filter noise at stage-1 coordinates theta."""
     model = base._replace(
         nominal=nominal_of(theta.log_f0),
-        coeffs=base.coeffs._replace(alpha_R=jnp.zeros_like(base.coeffs.alpha_R), alpha_Z=jnp.zeros_like(base.coeffs.alpha_Z)),
+        coeffs=base.coeffs._replace(
+            alpha_R=jnp.zeros_like(base.coeffs.alpha_R), alpha_Z=jnp.zeros_like(base.coeffs.alpha_Z)
+        ),
         effects=apply_scales(theta.effects, scales),
     )
     return model, noise._replace(process=noise.process * q_factors(theta.log_q))
@@ -135,7 +137,9 @@ def stage1_value_and_grad(
 ) -> tuple[Array, Stage1]:
     """`stage1_objective` and its gradient, compiled once per (prior width, h, loss, mesh): the model,
     noise, scales and records (their effects' gates too) are traced, so other values reuse it."""
-    return jax.value_and_grad(stage1_objective)(theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh)
+    return jax.value_and_grad(stage1_objective)(
+        theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh
+    )
 
 
 class Coordinates:
@@ -168,7 +172,9 @@ class Coordinates:
         full[self.free] = x
         return self._unravel(full)
 
-    def objective(self, value_and_grad: Callable[[Stage1], tuple[Array, Stage1]]) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+    def objective(
+        self, value_and_grad: Callable[[Stage1], tuple[Array, Stage1]]
+    ) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
         """A loss of `Stage1` with its gradient as a function of the free coordinates (for `minimise`)."""
 
         def of_free(x: np.ndarray) -> tuple[float, np.ndarray]:
@@ -184,7 +190,9 @@ class Coordinates:
         )
 
 
-def stage1_flags(effects: Effects, fit_q: bool, fit_f0: bool = True, fitted_effects: Sequence[str] | None = None) -> Stage1:
+def stage1_flags(
+    effects: Effects, fit_q: bool, fit_f0: bool = True, fitted_effects: Sequence[str] | None = None
+) -> Stage1:
     """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q) and the parameters of the
     effects named in fitted_effects (default: all), never the gates."""
     chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
@@ -234,7 +242,9 @@ def sensor_noise(levitated: np.ndarray) -> np.ndarray:
     return sigma
 
 
-def standard_errors(hessian: np.ndarray, n_valid: int, prior_sd: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def standard_errors(
+    hessian: np.ndarray, n_valid: int, prior_sd: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Posterior sd and correlation matrix of stage-1 coordinates from the Hessian of J.
 
     J is twice the negative log-posterior divided by N, so the posterior precision is N H / 2:
@@ -256,11 +266,15 @@ def standard_errors(hessian: np.ndarray, n_valid: int, prior_sd: np.ndarray | No
 
 def strongest_correlations(names: list[str], correlation: np.ndarray, count: int = 5) -> list[tuple[str, str, float]]:
     """The `count` largest |correlations| between distinct coordinates, strongest first."""
-    pairs = [(names[i], names[j], float(correlation[i, j])) for i in range(len(names)) for j in range(i + 1, len(names))]
+    pairs = [
+        (names[i], names[j], float(correlation[i, j])) for i in range(len(names)) for j in range(i + 1, len(names))
+    ]
     return sorted(pairs, key=lambda p: -abs(p[2]))[:count]
 
 
-def place_centres(deformation: np.ndarray, velocity: np.ndarray, count: int = 5) -> tuple[np.ndarray, np.ndarray] | None:
+def place_centres(
+    deformation: np.ndarray, velocity: np.ndarray, count: int = 5
+) -> tuple[np.ndarray, np.ndarray] | None:
     """A count x count grid of kernel centres over in-contact samples (deformation m > 0, velocity
     m/s): deformation from 0 to its largest value (the peaks are where the force matters most,
     and they are the rarest samples), velocity over its 1st-99th percentiles.
@@ -297,7 +311,9 @@ def filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) ->
     return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates)
 
 
-def contact_samples(model: Model, states: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def contact_samples(
+    model: Model, states: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """(radial deformation r - r0, rdot) and (axial compression -(z + z0), zdot) of states (..., 7),
     flattened, m and m/s (the kernel inputs rho and zeta of eq. 10)."""
     states = np.asarray(states).reshape(-1, 7)
@@ -325,4 +341,9 @@ def kernel_from_data(
         notes.append("axial contact too rare in the data to place the axial centres; the kernel.* grid is kept")
     else:
         T_Z, scale_Z = placed_Z
-    return kernel._replace(T_R=jnp.asarray(T_R), T_Z=jnp.asarray(T_Z), scale_R=jnp.asarray(scale_R), scale_Z=jnp.asarray(scale_Z)), notes
+    return (
+        kernel._replace(
+            T_R=jnp.asarray(T_R), T_Z=jnp.asarray(T_Z), scale_R=jnp.asarray(scale_R), scale_Z=jnp.asarray(scale_Z)
+        ),
+        notes,
+    )

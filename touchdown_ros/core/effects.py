@@ -235,7 +235,9 @@ _SENSOR_ERRORS = {
 LIBRARY: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("axial_load", _axial_load, {"force": (1000.0, "N", "constant downward axial load")}, _axial_load.__doc__),
+        Effect(
+            "axial_load", _axial_load, {"force": (1000.0, "N", "constant downward axial load")}, _axial_load.__doc__
+        ),
         Effect(
             "radial_load",
             _radial_load,
@@ -245,7 +247,10 @@ LIBRARY: dict[str, Effect] = {
         Effect(
             "magnetic_stiffness",
             _magnetic_stiffness,
-            {"k_radial": (1.0e5, "N/m", "radial negative stiffness"), "k_axial": (1.0e5, "N/m", "axial negative stiffness")},
+            {
+                "k_radial": (1.0e5, "N/m", "radial negative stiffness"),
+                "k_axial": (1.0e5, "N/m", "axial negative stiffness"),
+            },
             _magnetic_stiffness.__doc__,
         ),
         Effect(
@@ -263,10 +268,15 @@ LIBRARY: dict[str, Effect] = {
         Effect(
             "contact_angle_coupling",
             _contact_angle_coupling,
-            {"tan_beta": (0.1, "1", "tangent of the contact angle"), "k_radial": (1.0e8, "N/m", "radial contact stiffness")},
+            {
+                "tan_beta": (0.1, "1", "tangent of the contact angle"),
+                "k_radial": (1.0e8, "N/m", "radial contact stiffness"),
+            },
             _contact_angle_coupling.__doc__,
         ),
-        Effect("brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")}, _brake_decay.__doc__),
+        Effect(
+            "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")}, _brake_decay.__doc__
+        ),
         *(
             Effect(
                 f"sensor_{parameter}_{a}",
@@ -304,7 +314,9 @@ def _lookup(spec: str) -> Effect:
         if callable(obj):
             parameters = getattr(obj, "parameters", None)
             if not parameters:
-                raise ValueError(f"effect {spec!r}: the function needs a 'parameters' attribute (name -> (default, unit, text))")
+                raise ValueError(
+                    f"effect {spec!r}: the function needs a 'parameters' attribute (name -> (default, unit, text))"
+                )
             return Effect(attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE))
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):

@@ -243,7 +243,9 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
     )
     nominal = Nominal(*(read.number(f"contact.{name}", non_negative=True) for name in Nominal._fields))
     law = _contact_law(read)
-    scale = np.array([read.number("kernel.deformation_scale", positive=True), read.number("kernel.velocity_scale", positive=True)])
+    scale = np.array(
+        [read.number("kernel.deformation_scale", positive=True), read.number("kernel.velocity_scale", positive=True)]
+    )
     kernel = Kernel(
         T_R=_grid(read.numbers("kernel.radial_deformation_centres"), read.numbers("kernel.radial_velocity_centres")),
         T_Z=_grid(read.numbers("kernel.axial_deformation_centres"), read.numbers("kernel.axial_velocity_centres")),
@@ -317,7 +319,9 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
     d = TrainingSettings()
     laws = read._get("training.contact_laws", ["linear", "hertz:1.5", "hertz:1.111"])
     if not isinstance(laws, list) or not all(isinstance(v, str) for v in laws):
-        raise ConfigError(f"{read.source}: parameter 'training.contact_laws' must be a list such as [linear, hertz:1.5]")
+        raise ConfigError(
+            f"{read.source}: parameter 'training.contact_laws' must be a list such as [linear, hertz:1.5]"
+        )
     try:
         candidates = tuple(dict.fromkeys(parse_contact_law(v) for v in laws))
     except ValueError as error:
@@ -341,7 +345,11 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
 def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
     """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values."""
     active = read._get("effects.active", [])
-    if not isinstance(active, list) or not all(isinstance(n, str) and n for n in active) or len(set(active)) < len(active):
+    if (
+        not isinstance(active, list)
+        or not all(isinstance(n, str) and n for n in active)
+        or len(set(active)) < len(active)
+    ):
         raise ConfigError(f"{read.source}: parameter 'effects.active' must be a list of distinct effect names")
     user = {k.removeprefix("effects.user."): read.text(k, "") for k in flat if k.startswith("effects.user.")}
     reserved = sorted(set(active) & {"active", "user", "when"})
@@ -359,7 +367,9 @@ def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
             for parameter, default in effect.defaults().items()
         }
     stray = sorted(
-        k for k in flat if k.startswith("effects.") and k not in read.used and not k.startswith(("effects.user.", "effects.when."))
+        k
+        for k in flat
+        if k.startswith("effects.") and k not in read.used and not k.startswith(("effects.user.", "effects.when."))
     )
     if stray:
         raise ConfigError(

@@ -30,7 +30,14 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
-from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, hessian, minimise, require_convergence
+from touchdown_ros.workflows.optimise import (
+    DIVERGED_LOSS,
+    Convergence,
+    DivergedError,
+    hessian,
+    minimise,
+    require_convergence,
+)
 from touchdown_ros.workflows.training_data import TrainingData, note_ungated, record_mesh, training_batch
 
 #: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
@@ -91,7 +98,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     effects' parameters from the YAML's guess; keep the law with the lowest loss."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
-    print("sensor noise from the levitated samples: " + ", ".join(f"{a} {v * 1e6:.2f} um" for a, v in zip("xyz", sigma)), file=stream)
+    print(
+        "sensor noise from the levitated samples: " + ", ".join(f"{a} {v * 1e6:.2f} um" for a, v in zip("xyz", sigma)),
+        file=stream,
+    )
     noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
     h, kind, mesh = config.sample_period, settings.loss, record_mesh()
     effects = config.effects
@@ -102,7 +112,9 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     fit_q = kind == "nll"
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
-    start = Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True))
+    start = Stage1(
+        jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True)
+    )
     coordinates = Coordinates(start, stage1_flags(effects, fit_q))
 
     def law_model(law: ContactLaw) -> Model:
@@ -118,7 +130,16 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
         objective = coordinates.objective(
             lambda theta: stage1_value_and_grad(
-                theta, guess_log, base, noise, scales, records, prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh
+                theta,
+                guess_log,
+                base,
+                noise,
+                scales,
+                records,
+                prior_width=settings.prior_width,
+                h=h,
+                kind=kind,
+                mesh=mesh,
             )
         )
         return guess, objective, coordinates.initial(log_f0=guess_log)
@@ -150,9 +171,20 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     _, law, x, _, guess = screened[0]
     objective = problem(law, batch)[1]
     if len(screened) > 1:
-        print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
+        print(
+            "contact laws by loss: "
+            + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates)
+            + f"; chosen: {law.label}",
+            file=stream,
+        )
     x, convergence = minimise(
-        objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
+        objective,
+        x,
+        settings.calibration_steps,
+        settings.tolerance,
+        f"calibrate {law.label}, refined",
+        stream,
+        describe,
     )
     require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
     theta = coordinates.theta(x)

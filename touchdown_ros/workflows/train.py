@@ -13,7 +13,13 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.workflows.calibrate import Calibration, calibrate
-from touchdown_ros.core.calibration import apply_scales, contact_samples, effect_scales, filtered_states, kernel_from_data
+from touchdown_ros.core.calibration import (
+    apply_scales,
+    contact_samples,
+    effect_scales,
+    filtered_states,
+    kernel_from_data,
+)
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import Coefficients
@@ -146,7 +152,10 @@ def _merge_effects(active: Effects, started: Effects) -> Effects:
     switch on is dropped, with a note, rather than silently kept."""
     dropped = sorted(set(started.names) - set(active.names))
     if dropped:
-        print(f"note: the warm-start file's effect(s) {', '.join(dropped)} are not active in the rig; not fitted", file=sys.stderr)
+        print(
+            f"note: the warm-start file's effect(s) {', '.join(dropped)} are not active in the rig; not fitted",
+            file=sys.stderr,
+        )
     return active.with_values(started.values())
 
 
@@ -223,10 +232,15 @@ def train(
     result = fit(calibrated, data, lam, initial, steps, on_step, stream)
     if steps > 0:
         require_convergence(
-            result.convergence, "stage 2 (PKBKR)", data.paths, f"--steps N (then --resume continues from {checkpoint_path(out)})"
+            result.convergence,
+            "stage 2 (PKBKR)",
+            data.paths,
+            f"--steps N (then --resume continues from {checkpoint_path(out)})",
         )
     final = calibrated.model(result.coeffs, result.effects)
-    _, nis = filtered_states(final, calibrated.noise, config.sample_period, training_batch(calibrated, data, result.effects))
+    _, nis = filtered_states(
+        final, calibrated.noise, config.sample_period, training_batch(calibrated, data, result.effects)
+    )
     mean_nis = tuple(float(np.nanmean(row)) for row in np.asarray(nis)[: len(data.records)])
     seconds = time.perf_counter() - start
     save_coefficients(
