@@ -44,10 +44,12 @@ def test_pep257():
 
 
 def test_the_linters_report_a_real_violation(tmp_path):
-    """The configuration still lets each linter fail: an unused import, a docstring padded with spaces."""
+    """The configuration still lets each linter fail: an unused import, a line over 120 characters, a
+    docstring padded with spaces."""
     bad = tmp_path / "bad.py"
-    bad.write_text('"""A module."""\nimport os\n\n\ndef f():\n    """  Padded summary."""\n')
+    long_line = "x = " + repr("a" * 120)
+    bad.write_text(f'"""A module."""\nimport os\n\n{long_line}\n\n\ndef f():\n    """  Padded summary."""\n')
     result = flake8([str(bad)])
-    assert result.returncode == 1 and "F401" in result.stdout, result.stdout + result.stderr
+    assert result.returncode == 1 and "F401" in result.stdout and "E501" in result.stdout, result.stdout + result.stderr
     result = pep257([str(bad)])
     assert result.returncode == 1 and "D210" in result.stderr, result.stdout + result.stderr
