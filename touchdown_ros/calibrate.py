@@ -13,11 +13,13 @@ import numpy as np
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
+    SUPPORT_NAMES,
     Coordinates,
     Stage1,
     apply_scales,
     convert_guess,
     effect_scales,
+    filtered_states,
     log_nominal,
     sensor_noise,
     stage1_flags,
@@ -26,6 +28,7 @@ from touchdown_ros.core.calibration import (
     standard_errors,
     strongest_correlations,
 )
+from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
@@ -112,7 +115,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         values = np.exp(np.asarray(coordinates.theta(x).log_f0))
         return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
 
-    def problem(law: ContactLaw, records: Batch):
+    def problem(law: ContactLaw, records: Batch, coordinates: Coordinates = coordinates):
         """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
@@ -155,12 +158,35 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
     )
     require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
+    if settings.axial_support != "rigid":
+        # A yielding axial support: its start from the face forces the rigid fit reaches in the data.
+        rigid_loss = convergence.final_loss
+        start_support = support_start(config.law, *stage1_model_and_noise(coordinates.theta(x), law_model(law), noise, scales), h, batch)
+        with_support = Coordinates(start._replace(log_support=jnp.asarray(start_support)), stage1_flags(effects, fit_q, fit_support=True))
+        objective_s = problem(law, batch, with_support)[1]
+        theta_rigid = coordinates.theta(x)
+        x_s = with_support.initial(log_f0=theta_rigid.log_f0, log_q=theta_rigid.log_q, effects=theta_rigid.effects)
+        x_s, convergence_s = minimise(
+            objective_s, x_s, settings.calibration_steps, settings.tolerance, f"calibrate {law.label} + yielding support", stream,
+            lambda v: describe(v[: len(x)]) + "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, v[-2:])),
+        )
+        gain = support_evidence(rigid_loss, convergence_s.final_loss, n_valid, kind)
+        keep = settings.axial_support == "yielding" or (convergence_s.converged and gain > 0.0)
+        print(
+            f"yielding axial support: BIC {'falls' if gain > 0 else 'rises'} by {abs(gain):.4g}; "
+            + ("kept" if keep else "not kept: the support stays rigid"),
+            file=stream,
+        )
+        if keep:
+            coordinates, objective, x, convergence = with_support, objective_s, x_s, convergence_s
+            require_convergence(convergence, f"stage 1 ({law.label} + support)", data.paths, "-p training.calibration_steps:=N")
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
+    law = law.with_support(float(model.law.support_preload), float(model.law.support_share))
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
@@ -172,6 +198,33 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+def support_start(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> np.ndarray:
+    """ln preload (N) and ln share where stage 1 starts a yielding axial support: the YAML's when it
+    gives one, otherwise half the largest face force of `model` on the filtered records (so that
+    the data above it pull the preload where it belongs) and a share of 0.5."""
+    if guess.yields:
+        return np.log([float(guess.support_preload), float(guess.support_share)])
+    states = np.asarray(filtered_states(model, noise, h, batch)[0])[np.asarray(batch.valid) > 0]
+    deepest = float(np.nanmax(-(states[:, 2] + model.rig.axial_clearance), initial=0.0))
+    peak = float(normal_force(model.law, model.nominal.k_Z, 0.0, jnp.asarray(deepest), 0.0)) if deepest > 0 else 0.0
+    if not peak > 0.0:
+        raise ValueError("no axial contact in the training bags: a yielding axial support cannot be fitted (training.axial_support: rigid)")
+    return np.log([0.5 * peak, 0.5])
+
+
+def support_evidence(rigid_loss: float, support_loss: float, n_valid: int, kind: str) -> float:
+    """How much the BIC falls when the axial support may yield (2 more parameters; > 0: keep it).
+
+    With the nll loss N J is -2 ln L up to a constant; with the one-step loss (a sum of
+    squares) -2 ln L is N ln J for Gaussian errors of unknown variance.
+    """
+    if kind == "nll":
+        fall = n_valid * (rigid_loss - support_loss)
+    else:
+        fall = n_valid * np.log(rigid_loss / support_loss)
+    return float(fall - len(SUPPORT_NAMES) * np.log(n_valid))
 
 
 def spread(count: int, most: int) -> list[int]:
