@@ -33,7 +33,15 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
-from touchdown_ros.optimise import DIVERGED_LOSS, Convergence, DivergedError, hessian, minimise, require_convergence
+from touchdown_ros.optimise import (
+    DIVERGED_LOSS,
+    Convergence,
+    DivergedError,
+    TrainingError,
+    hessian,
+    minimise,
+    require_convergence,
+)
 from touchdown_ros.training_data import TrainingData, note_ungated, record_mesh, training_batch
 
 #: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
@@ -158,14 +166,26 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
     )
     require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
-    if settings.axial_support != "rigid":
-        # A yielding axial support: its start from the face forces the rigid fit reaches in the data.
+    theta_rigid = coordinates.theta(x)
+    starts = [] if settings.axial_support == "rigid" else support_starts(
+        config.law, *stage1_model_and_noise(theta_rigid, law_model(law), noise, scales), h, batch
+    )
+    if settings.axial_support == "yielding" and not starts:
+        raise TrainingError(
+            f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
+            "cannot be fitted; set training.axial_support: auto or rigid"
+        )
+    if starts:
         rigid_loss = convergence.final_loss
-        start_support = support_start(config.law, *stage1_model_and_noise(coordinates.theta(x), law_model(law), noise, scales), h, batch)
-        with_support = Coordinates(start._replace(log_support=jnp.asarray(start_support)), stage1_flags(effects, fit_q, fit_support=True))
+        with_support = Coordinates(start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True))
         objective_s = problem(law, batch, with_support)[1]
-        theta_rigid = coordinates.theta(x)
-        x_s = with_support.initial(log_f0=theta_rigid.log_f0, log_q=theta_rigid.log_q, effects=theta_rigid.effects)
+        tried = [
+            with_support.initial(
+                log_f0=theta_rigid.log_f0, log_q=theta_rigid.log_q, effects=theta_rigid.effects, log_support=jnp.asarray(s)
+            )
+            for s in starts
+        ]
+        x_s = min(tried, key=lambda v: objective_s(v)[0])
         x_s, convergence_s = minimise(
             objective_s, x_s, settings.calibration_steps, settings.tolerance, f"calibrate {law.label} + yielding support", stream,
             lambda v: describe(v[: len(x)]) + "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, v[-2:])),
@@ -200,18 +220,25 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
 
 
-def support_start(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> np.ndarray:
-    """ln preload (N) and ln share where stage 1 starts a yielding axial support: the YAML's when it
-    gives one, otherwise half the largest face force of `model` on the filtered records (so that
-    the data above it pull the preload where it belongs) and a share of 0.5."""
+#: Where a yielding support's fit may start (the lowest loss is taken): preload as a share of the
+#: largest face force the rigid fit reaches in the data, and the share passed above it.
+SUPPORT_START_PRELOADS = (0.4, 0.6, 0.8, 0.95)
+SUPPORT_START_SHARES = (0.1, 0.5)
+
+
+def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> list[np.ndarray]:
+    """ln preload (N) and ln share where stage 1 may start a yielding axial support: the YAML's when
+    it gives one, otherwise a grid below the largest face force of `model` on the filtered
+    records (only data above the preload move it, so it must start inside their range); none
+    without axial contact."""
     if guess.yields:
-        return np.log([float(guess.support_preload), float(guess.support_share)])
+        return [np.log([float(guess.support_preload), float(guess.support_share)])]
     states = np.asarray(filtered_states(model, noise, h, batch)[0])[np.asarray(batch.valid) > 0]
     deepest = float(np.nanmax(-(states[:, 2] + model.rig.axial_clearance), initial=0.0))
     peak = float(normal_force(model.law, model.nominal.k_Z, 0.0, jnp.asarray(deepest), 0.0)) if deepest > 0 else 0.0
     if not peak > 0.0:
-        raise ValueError("no axial contact in the training bags: a yielding axial support cannot be fitted (training.axial_support: rigid)")
-    return np.log([0.5 * peak, 0.5])
+        return []
+    return [np.log([f * peak, share]) for f in SUPPORT_START_PRELOADS for share in SUPPORT_START_SHARES]
 
 
 def support_evidence(rigid_loss: float, support_loss: float, n_valid: int, kind: str) -> float:
