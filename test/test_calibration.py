@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
+from touchdown_ros.calibrate import support_evidence
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -66,6 +67,28 @@ def test_hertz_force_and_guess_conversion():
         assert (converted.mu, converted.k_ZR) == (GUESS.mu, GUESS.k_ZR)
         back = convert_guess(converted, target, linear, d_ref)
         np.testing.assert_allclose(back, GUESS, rtol=1e-12)
+
+
+def test_a_yielding_support_is_kept_only_when_the_bic_falls():
+    n = 10_000
+    penalty = 2 * np.log(n)  # two more parameters
+    assert support_evidence(3.0, 3.0, n, "nll") == pytest.approx(-penalty)
+    assert support_evidence(3.0, 3.0 - 1.01 * penalty / n, n, "nll") > 0 > support_evidence(3.0, 3.0 - 0.99 * penalty / n, n, "nll")
+    # one-step loss (a sum of squares): N ln(J_rigid / J_support)
+    assert support_evidence(2.0, 1.0, n, "one_step") == pytest.approx(n * np.log(2.0) - penalty)
+
+
+def test_config_reads_the_axial_support():
+    from touchdown_ros.io.config import ConfigError, load_config
+
+    assert not load_config().law.yields and load_config().training.axial_support == "auto"
+    law = load_config(overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_share": 0.25}).law
+    assert law.yields and (float(law.support_preload), float(law.support_share)) == (3.0e4, 0.25)
+    assert "support yields above 30 kN (share 0.25)" in law.label
+    with pytest.raises(ConfigError, match="support_share must be in"):
+        load_config(overrides={"contact.support_share": 1.5})
+    with pytest.raises(ConfigError, match="training.axial_support"):
+        load_config(overrides={"training.axial_support": "soft"})
 
 
 def test_standard_errors_of_a_known_quadratic():
