@@ -98,8 +98,9 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
 
 
 def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibration:
-    """Stage 1 (core.calibration): for each candidate contact law, fit f0, the Q factors and the
-    effects' parameters from the YAML's guess; keep the law with the lowest loss."""
+    """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
+    support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
+    guess; keep the candidate with the lowest BIC."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print("sensor noise from the levitated samples: " + ", ".join(f"{a} {v * 1e6:.2f} um" for a, v in zip("xyz", sigma)), file=stream)
@@ -114,14 +115,17 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
     start = Stage1(jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True))
-    coordinates = Coordinates(start, stage1_flags(effects, fit_q))
+    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
     def describe(x: np.ndarray) -> str:
-        values = np.exp(np.asarray(coordinates.theta(x).log_f0))
-        return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
+        """f0 (the first free coordinates) and, when there are two more at the end, the support."""
+        text = "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, np.exp(x[: len(PARAMETER_NAMES)])))
+        if len(x) == len(start_coordinates.names) + len(SUPPORT_NAMES):
+            text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, x[-2:]))
+        return text
 
     def problem(law: ContactLaw, records: Batch, coordinates: Coordinates = coordinates):
         """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
@@ -134,18 +138,32 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         )
         return guess, objective, coordinates.initial(log_f0=guess_log)
 
-    # Screen every candidate law to a loose tolerance on a few bags, then refine the best on all.
+    def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
+        """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
+        from the rigid fit theta_rigid: the best of a grid of supports, then all coordinates
+        together; None without axial contact."""
+        starts = support_starts(config.law, *stage1_model_and_noise(theta_rigid, law_model(law), noise, scales), h, records)
+        if not starts:
+            return None
+        with_support = Coordinates(start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True))
+        objective = problem(law, records, with_support)[1]
+        kept = {"log_f0": theta_rigid.log_f0, "log_q": theta_rigid.log_q, "effects": theta_rigid.effects}
+        x0 = min((with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=lambda v: objective(v)[0])
+        x, convergence = minimise(objective, x0, settings.calibration_steps, tolerance, label, stream, describe)
+        return with_support, x, convergence
+
+    # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
+    # a loose tolerance on a few bags; refine the one of the lowest BIC on all.
     screen_data = data.subset(spread(len(data.records), settings.screening_bags))
     screen_batch = batch if len(screen_data.paths) == len(data.paths) else training_batch(config, screen_data, effects)
     if screen_batch is not batch:
         print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
-    screened = []
+    n_screen = int(np.sum(np.asarray(screen_batch.valid)))
+    screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
+    screened = []  # (BIC, law, coordinates, x, convergence, guess, yields)
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, screen_batch)
-        x, convergence = minimise(
-            objective, x0, settings.calibration_steps, max(settings.tolerance, SCREEN_TOLERANCE),
-            f"calibrate {law.label}", stream, describe,
-        )
+        x, convergence = minimise(objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe)
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(coordinates.theta(x0), law_model(law), noise, scales)
             paths = screen_data.paths
@@ -155,51 +173,39 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        screened.append((convergence.final_loss, law, x, convergence, guess))
-    screened.sort(key=lambda t: t[0])
-    candidates = tuple({"law": t[1].label, "loss": t[0], "steps": t[3].steps} for t in screened)
-    _, law, x, _, guess = screened[0]
-    objective = problem(law, batch)[1]
-    if len(screened) > 1:
-        print("contact laws by loss: " + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates) + f"; chosen: {law.label}", file=stream)
-    x, convergence = minimise(
-        objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {law.label}, refined", stream, describe
-    )
-    require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
-    theta_rigid = coordinates.theta(x)
-    starts = [] if settings.axial_support == "rigid" else support_starts(
-        config.law, *stage1_model_and_noise(theta_rigid, law_model(law), noise, scales), h, batch
-    )
-    if settings.axial_support == "yielding" and not starts:
+        if settings.axial_support != "yielding":
+            screened.append((bic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence, guess, False))
+        if settings.axial_support != "rigid":
+            fitted = fit_support(law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support")
+            if fitted is not None:
+                with_support, x_s, convergence_s = fitted
+                extra = len(SUPPORT_NAMES)
+                screened.append((bic(convergence_s.final_loss, extra, n_screen, kind), law, with_support, x_s, convergence_s, guess, True))
+    if not screened:
         raise TrainingError(
             f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
             "cannot be fitted; set training.axial_support: auto or rigid"
         )
-    if starts:
-        rigid_loss = convergence.final_loss
-        with_support = Coordinates(start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True))
-        objective_s = problem(law, batch, with_support)[1]
-        tried = [
-            with_support.initial(
-                log_f0=theta_rigid.log_f0, log_q=theta_rigid.log_q, effects=theta_rigid.effects, log_support=jnp.asarray(s)
-            )
-            for s in starts
-        ]
-        x_s = min(tried, key=lambda v: objective_s(v)[0])
-        x_s, convergence_s = minimise(
-            objective_s, x_s, settings.calibration_steps, settings.tolerance, f"calibrate {law.label} + yielding support", stream,
-            lambda v: describe(v[: len(x)]) + "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, v[-2:])),
-        )
-        gain = support_evidence(rigid_loss, convergence_s.final_loss, n_valid, kind)
-        keep = settings.axial_support == "yielding" or (convergence_s.converged and gain > 0.0)
+    screened.sort(key=lambda t: t[0])
+    best_bic = screened[0][0]
+
+    def named(t) -> str:
+        return t[1].label + (" + yielding support" if t[6] else "")
+
+    candidates = tuple(
+        {"law": named(t), "loss": t[4].final_loss, "bic_above_best": round(t[0] - best_bic, 3), "steps": t[4].steps} for t in screened
+    )
+    _, law, coordinates, x, _, guess, _ = screened[0]
+    objective = problem(law, batch, coordinates)[1]
+    if len(screened) > 1:
         print(
-            f"yielding axial support: BIC {'falls' if gain > 0 else 'rises'} by {abs(gain):.4g}; "
-            + ("kept" if keep else "not kept: the support stays rigid"),
+            "contact laws by BIC (above the best): " + ", ".join(f"{c['law']} {c['bic_above_best']:.4g}" for c in candidates)
+            + f"; chosen: {named(screened[0])}",
             file=stream,
         )
-        if keep:
-            coordinates, objective, x, convergence = with_support, objective_s, x_s, convergence_s
-            require_convergence(convergence, f"stage 1 ({law.label} + support)", data.paths, "-p training.calibration_steps:=N")
+    label = f"calibrate {named(screened[0])}, refined"
+    x, convergence = minimise(objective, x, settings.calibration_steps, settings.tolerance, label, stream, describe)
+    require_convergence(convergence, f"stage 1 ({named(screened[0])})", data.paths, "-p training.calibration_steps:=N")
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
@@ -222,8 +228,8 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
 
 #: Where a yielding support's fit may start (the lowest loss is taken): preload as a share of the
 #: largest face force the rigid fit reaches in the data, and the share passed above it.
-SUPPORT_START_PRELOADS = (0.4, 0.6, 0.8, 0.95)
-SUPPORT_START_SHARES = (0.1, 0.5)
+SUPPORT_START_PRELOADS = (0.4, 0.55, 0.7, 0.85, 1.0)
+SUPPORT_START_SHARES = (0.02, 0.1, 0.3, 0.6)
 
 
 def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> list[np.ndarray]:
@@ -241,17 +247,13 @@ def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float
     return [np.log([f * peak, share]) for f in SUPPORT_START_PRELOADS for share in SUPPORT_START_SHARES]
 
 
-def support_evidence(rigid_loss: float, support_loss: float, n_valid: int, kind: str) -> float:
-    """How much the BIC falls when the axial support may yield (2 more parameters; > 0: keep it).
-
-    With the nll loss N J is -2 ln L up to a constant; with the one-step loss (a sum of
-    squares) -2 ln L is N ln J for Gaussian errors of unknown variance.
-    """
-    if kind == "nll":
-        fall = n_valid * (rigid_loss - support_loss)
-    else:
-        fall = n_valid * np.log(rigid_loss / support_loss)
-    return float(fall - len(SUPPORT_NAMES) * np.log(n_valid))
+def bic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
+    """Bayesian information criterion of a stage-1 fit, up to a constant shared by the candidates:
+    -2 ln L + k ln N with k the parameters beyond the common ones. With the nll loss N J is
+    -2 ln L up to a constant; with the one-step loss (a sum of squares) -2 ln L is N ln J for
+    Gaussian errors of unknown variance."""
+    fit = n_valid * loss if kind == "nll" else n_valid * float(np.log(loss))
+    return float(fit + extra_parameters * np.log(n_valid))
 
 
 def spread(count: int, most: int) -> list[int]:
