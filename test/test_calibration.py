@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
+from touchdown_ros.workflows.calibrate import bic
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -68,6 +69,32 @@ def test_hertz_force_and_guess_conversion():
         assert (converted.mu, converted.k_ZR) == (GUESS.mu, GUESS.k_ZR)
         back = convert_guess(converted, target, linear, d_ref)
         np.testing.assert_allclose(back, GUESS, rtol=1e-12)
+
+
+def test_a_yielding_support_is_chosen_only_when_the_bic_falls():
+    n = 10_000
+    penalty = 2 * np.log(n)  # two more parameters
+    assert bic(3.0, 2, n, "nll") - bic(3.0, 0, n, "nll") == pytest.approx(penalty)
+    assert (
+        bic(3.0 - 1.01 * penalty / n, 2, n, "nll") < bic(3.0, 0, n, "nll") < bic(3.0 - 0.99 * penalty / n, 2, n, "nll")
+    )
+    # one-step loss (a sum of squares): N ln J
+    assert bic(2.0, 0, n, "one_step") - bic(1.0, 2, n, "one_step") == pytest.approx(n * np.log(2.0) - penalty)
+
+
+def test_config_reads_the_axial_support():
+    from touchdown_ros.io.config import ConfigError, load_config
+
+    assert not load_config().law.yields and load_config().training.axial_support == "auto"
+    law = load_config(
+        overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_share": 0.25}
+    ).law
+    assert law.yields and (float(law.support_preload), float(law.support_share)) == (3.0e4, 0.25)
+    assert "support yields above 30 kN (share 0.25)" in law.label
+    with pytest.raises(ConfigError, match="support_share must be in"):
+        load_config(overrides={"contact.support_share": 1.5})
+    with pytest.raises(ConfigError, match="training.axial_support"):
+        load_config(overrides={"training.axial_support": "soft"})
 
 
 def test_standard_errors_of_a_known_quadratic():
@@ -145,7 +172,13 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     # stage 2 kept the step with the lowest held-out error, and recorded it
     assert 0 <= pkbkr["kept_step"] <= pkbkr["steps"] and pkbkr["held_out_kept"] <= pkbkr["held_out_initial"]
     assert set(calibration["relative_standard_error"]) >= {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"}
-    assert len(calibration["candidates"]) == 3  # linear, hertz 1.5, hertz 10/9 were each fitted
+    # linear, hertz 1.5, hertz 10/9 were each fitted with a rigid and with a yielding axial support
+    assert sorted(c["law"] for c in calibration["candidates"]) == sorted(
+        f"{law}{support}"
+        for law in ("linear", "hertz n=1.5", "hertz n=1.111")
+        for support in ("", " + yielding support")
+    )
+    assert min(c["bic_above_best"] for c in calibration["candidates"]) == 0.0
     # the stiffness moved far from the reference guess (5e8 N/m) to what the rig is
     config = variant_config(v)
     assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)

@@ -9,6 +9,7 @@ from touchdown_ros.core.types import Coefficients, ContactLaw
 from touchdown_ros.io.coefficients import (
     CoefficientFileError,
     TrainingRecord,
+    content_sha256,
     load_coefficients,
     save_coefficients,
     sha256_of,
@@ -71,6 +72,28 @@ def test_file_carries_its_calibration(tmp_path):
     path.write_text(yaml.safe_dump(document))
     with pytest.raises(CoefficientFileError, match=r"contact\.k_R must be a finite number >= 0"):
         load_coefficients(path, CONFIG)
+
+
+def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
+    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 0.2)
+    path = save_coefficients(
+        tmp_path / "c.yaml",
+        random_coeffs(),
+        CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise),
+        TrainingRecord(),
+    )
+    assert load_coefficients(path, CONFIG).config(CONFIG).law == law
+    rigid = save_coefficients(tmp_path / "rigid.yaml", random_coeffs(), CONFIG, TrainingRecord())
+    document = yaml.safe_load(rigid.read_text())
+    assert document["contact"]["support_preload"] == float("inf")  # written as .inf
+    del document["contact"]["support_preload"], document["contact"]["support_share"]  # a file of before: rigid
+    rigid.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert not load_coefficients(rigid, CONFIG).config(CONFIG).law.yields
+    for preload, share in ((-1.0, 0.5), (3e4, 1.5), (3e4, float("nan")), ("x", 0.5)):
+        document["contact"].update(support_preload=preload, support_share=share)
+        rigid.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=r"contact\.support_preload must be a number > 0"):
+            load_coefficients(rigid, CONFIG)
 
 
 def test_other_rig_is_refused_naming_the_difference(tmp_path):

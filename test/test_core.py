@@ -16,7 +16,7 @@ from touchdown_ros.core.dynamics import (
     transition_jacobian,
 )
 from touchdown_ros.core.ekf import Belief, ekf, model_transition, predict, predict_with_rate, rts_smoother
-from touchdown_ros.core.estimate import DropDetector, GridError, force_std, signals, to_grid
+from touchdown_ros.core.estimate import DropDetector, GridError, force_model_variance, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
 from touchdown_ros.io.config import load_config
@@ -205,6 +205,39 @@ def test_force_std_is_finite_difference_jacobian_through_a_known_covariance(case
     # linear in the state's standard deviation: a quarter of the covariance halves sigma_F
     half = signals(model, Belief(jnp.asarray(xi)[None], 0.25 * jnp.asarray(P)[None]))
     np.testing.assert_allclose(force_std(np.asarray(half.force_cov))[0], 0.5 * std, rtol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["axial", "both"])
+def test_a_yielding_support_passes_its_share_of_the_face_force_above_the_preload(case):
+    xi = np.array(CASES[case])
+    F_n, F_t, F_z, _, _ = hand_forces(xi)
+    F_zZ = -NOMINAL.k_Z * (xi[2] + RIG.axial_clearance) - NOMINAL.c_Z * xi[6]
+    rigid = make_model()
+    for preload, share in ((0.5 * F_zZ, 0.2), (0.9 * F_zZ, 0.0), (2.0 * F_zZ, 0.2)):
+        model = rigid._replace(law=rigid.law.with_support(preload, share))
+        passed = F_zZ if F_zZ <= preload else preload + share * (F_zZ - preload)
+        forces = contact_forces(model, jnp.asarray(xi))
+        assert float(forces.F_z) == pytest.approx(F_z - F_zZ + passed, rel=1e-12)
+        assert float(forces.F_t) == pytest.approx(
+            F_t + NOMINAL.k_ZR * (passed - F_zZ), rel=1e-12
+        )  # face friction on what passes
+        assert float(forces.F_n) == F_n
+    # rigid (preload inf) is the paper's force bit for bit
+    assert contact_forces(rigid, jnp.asarray(xi)) == contact_forces(
+        rigid._replace(law=rigid.law.with_support()), jnp.asarray(xi)
+    )
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_force_band_adds_the_models_own_error_in_contact_only(case):
+    model = make_model(random_coeffs(2))
+    xi, P = jnp.asarray(CASES[case])[None], jnp.asarray(known_covariance(3))[None]
+    noise = CONFIG.noise._replace(process=np.array([1e-14, 1e-14, 1e-14, 1e-8, 2e-7, 3e-7, 5e-8]))
+    variance = np.asarray(force_model_variance(model, noise, 1e-4))
+    np.testing.assert_allclose(variance, RIG.mass**2 * np.array([2e-7, 3e-7, 5e-8]) / 1e-8, rtol=1e-12)  # m^2 Q_v / h^2
+    added = np.asarray(signals(model, Belief(xi, P), variance).force_cov - signals(model, Belief(xi, P)).force_cov)[0]
+    expected = np.zeros((3, 3)) if case == "free" else np.diag(variance)
+    np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-9 * variance.max())
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -50,6 +50,16 @@ class Stage1(NamedTuple):
     log_f0: Array  # (6,) ln of k_R, c_R, mu, k_Z, c_Z, k_ZR in the law's units
     log_q: Array  # (2,) ln of the factors on Q's radial and axial blocks
     effects: Effects  # active effects, parameters divided by their scales
+    log_support: Array | None = None  # (2,) ln of the axial support's preload (N) and share; None: the law's
+
+
+#: Names of the axial support's coordinates (`Stage1.log_support`).
+SUPPORT_NAMES = ("support_preload", "support_share")
+
+
+def support_law(law: ContactLaw, log_support: Array) -> ContactLaw:
+    """`law` with the axial support of `log_support` (ln preload N, ln share; share at most 1)."""
+    return law.with_support(jnp.exp(log_support[0]), jnp.minimum(jnp.exp(log_support[1]), 1.0))
 
 
 def q_factors(log_q: Array) -> Array:
@@ -92,7 +102,9 @@ def stage1_model_and_noise(
     theta: Stage1, base: Model, noise: FilterNoise, scales: Effects
 ) -> tuple[Model, FilterNoise]:
     """The model (constant parameters, alpha = 0) and filter noise at stage-1 coordinates theta."""
+    law = base.law if theta.log_support is None else support_law(base.law, theta.log_support)
     model = base._replace(
+        law=law,
         nominal=nominal_of(theta.log_f0),
         coeffs=base.coeffs._replace(
             alpha_R=jnp.zeros_like(base.coeffs.alpha_R), alpha_Z=jnp.zeros_like(base.coeffs.alpha_Z)
@@ -158,6 +170,7 @@ class Coordinates:
                 tuple({k: f"{e.name}.{k}" for k in p} for e, p in zip(start.effects.effects, start.effects.params)),
                 tuple(f"{e.name}.gate" for e in start.effects.effects),
             ),
+            None if start.log_support is None else list(SUPPORT_NAMES),
         )
         self.names = [n for n, f in zip(jax.tree_util.tree_leaves(labels), self.free) if f]
 
@@ -191,10 +204,15 @@ class Coordinates:
 
 
 def stage1_flags(
-    effects: Effects, fit_q: bool, fit_f0: bool = True, fitted_effects: Sequence[str] | None = None
+    effects: Effects,
+    fit_q: bool,
+    fit_f0: bool = True,
+    fitted_effects: Sequence[str] | None = None,
+    fit_support: bool = False,
 ) -> Stage1:
-    """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q) and the parameters of the
-    effects named in fitted_effects (default: all), never the gates."""
+    """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q), the parameters of the
+    effects named in fitted_effects (default: all), never the gates, and the axial support
+    (fit_support; its start then needs a `log_support`, otherwise it has none)."""
     chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
     return Stage1(
         jnp.full(len(PARAMETER_NAMES), float(fit_f0)),
@@ -204,6 +222,7 @@ def stage1_flags(
             tuple({k: float(e.name in chosen) for k in p} for e, p in zip(effects.effects, effects.params)),
             (0.0,) * len(effects),
         ),
+        jnp.ones(len(SUPPORT_NAMES)) if fit_support else None,
     )
 
 

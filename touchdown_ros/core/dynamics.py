@@ -41,6 +41,12 @@ def normal_force(law: ContactLaw, k: Array, c: Array, deformation: Array, rate: 
     return jnp.where(in_contact, force, 0.0)
 
 
+def yielding_support(law: ContactLaw, force: Array) -> Array:
+    """Face force (N) passed by the axial support: as it is up to the preload P, above it
+    P + rho (F - P) (a preloaded disc-spring support that yields). Exactly F when rigid (P = inf)."""
+    return force - (1.0 - law.support_share) * jnp.maximum(force - law.support_preload, 0.0)
+
+
 def contact_forces(model: Model, xi: Array) -> ContactForces:
     """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
     rig = model.rig
@@ -60,6 +66,7 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     F_tR = mu * F_nR  # eq. 6b
     F_zR = -mu * jnp.sign(zdot) * F_nR  # eq. 6c, friction opposing the axial sliding
     F_zZ = normal_force(model.law, k_Z, c_Z, axial_deformation, -zdot)  # eq. 8c: -k_Z (z + z0) - c_Z zdot
+    F_zZ = yielding_support(model.law, F_zZ)
     F_tZ = k_ZR * F_zZ  # eq. 8b (F_nZ = 0, eq. 8a)
 
     F_n = F_nR

@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import contact_forces_and_jacobian, measurement
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
-from touchdown_ros.core.types import Coefficients, FilterNoise, Model
+from touchdown_ros.core.types import Coefficients, ContactForces, FilterNoise, Model
 
 
 class SampleGrid(NamedTuple):
@@ -135,15 +135,33 @@ def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) 
     return Belief(mean, np.diag(np.asarray(initial_cov, dtype=np.float64)))
 
 
-def signals(model: Model, states: Belief) -> SignalSet:
+def force_model_variance(model: Model, noise: FilterNoise, sample_period: float) -> Array:
+    """(3,) N^2 per sensor axis: the variance of the contact force the model itself leaves out,
+    the process noise on the velocities read as a force, m^2 Q_v / h^2 (the filter's own
+    account of its acceleration error; Q as the training fitted it)."""
+    return model.rig.mass**2 * jnp.asarray(noise.process)[4:] / sample_period**2
+
+
+def force_covariance(forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None) -> Array:
+    """(3, 3) N^2: the force's covariance through its Jacobian (J P J^T), plus `model_variance`
+    on the diagonal while a contact is on (out of contact the force is zero and known to be)."""
+    state_part = J_force @ cov @ J_force.T
+    if model_variance is None:
+        return state_part
+    in_contact = jnp.logical_or(forces.radial_contact, forces.axial_contact)
+    return state_part + jnp.where(in_contact, jnp.diag(model_variance), 0.0)
+
+
+def signals(model: Model, states: Belief, model_variance: Array | None = None) -> SignalSet:
     """Accelerations (phi at the state) and contact forces, each with its covariance linearised
-    about the state (J P J^T, J by automatic differentiation)."""
+    about the state (J P J^T, J by automatic differentiation); the force's with `model_variance`
+    (`force_model_variance`) added in contact."""
 
     def one(mean: Array, cov: Array):
         acceleration = phi(model, mean)[4:]
         J = jax.jacfwd(lambda s: phi(model, s)[4:])(mean)
         forces, J_force = contact_forces_and_jacobian(model, mean)
-        return acceleration, J @ cov @ J.T, forces, J_force @ cov @ J_force.T
+        return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance)
 
     acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)
     return SignalSet(
@@ -188,9 +206,10 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         outputs: StepOutput = ekf(model, noise, sample_period, initial, etas)
         smoothed = rts_smoother(outputs)
         nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
+        model_variance = force_model_variance(model, noise, sample_period)
         return (
-            signals(model, outputs.filtered),
-            signals(model, smoothed),
+            signals(model, outputs.filtered, model_variance),
+            signals(model, smoothed, model_variance),
             jax.vmap(lambda xi: measurement(model, xi))(outputs.prior.mean),
             outputs.innovation,
             outputs.innovation_cov,

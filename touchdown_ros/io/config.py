@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -43,6 +44,8 @@ class Topics:
 
 LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
+#: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding.
+SUPPORT_CHOICES = ("auto", "rigid", "yielding")
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,7 @@ class TrainingSettings:
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
+    axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the BIC falls) or not
 
 
 @dataclass(frozen=True)
@@ -305,11 +309,20 @@ def parse_contact_law(text: str) -> ContactLaw:
 
 
 def _contact_law(read: ParameterReader) -> ContactLaw:
-    """contact.law (linear | hertz) and contact.exponent (hertz only, default 1.5)."""
+    """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5) and the axial
+    support: contact.support_preload (N, default .inf: rigid) and contact.support_share (0-1]."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
+    rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support
+    preload = math.inf if rigid else read.number("contact.support_preload", positive=True)
+    share = read.number("contact.support_share", 1.0, positive=True)
+    if share > 1.0:
+        raise ConfigError(
+            f"{read.source}: contact.support_share must be in (0, 1] (share of the force above the preload), "
+            f"got {share}"
+        )
     try:
-        return ContactLaw.of(name, exponent)
+        return ContactLaw.of(name, exponent).with_support(preload, share)
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
@@ -339,6 +352,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         held_out_every=read.integer("training.held_out_every", d.held_out_every, minimum=0),
         held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
         patience=read.integer("training.patience", d.patience, minimum=1),
+        axial_support=read.choice("training.axial_support", d.axial_support, SUPPORT_CHOICES),
     )
 
 

@@ -13,11 +13,13 @@ import numpy as np
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
+    SUPPORT_NAMES,
     Coordinates,
     Stage1,
     apply_scales,
     convert_guess,
     effect_scales,
+    filtered_states,
     log_nominal,
     sensor_noise,
     stage1_flags,
@@ -26,6 +28,7 @@ from touchdown_ros.core.calibration import (
     standard_errors,
     strongest_correlations,
 )
+from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Model, Nominal
@@ -34,6 +37,7 @@ from touchdown_ros.workflows.optimise import (
     DIVERGED_LOSS,
     Convergence,
     DivergedError,
+    TrainingError,
     hessian,
     minimise,
     require_convergence,
@@ -94,8 +98,9 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
 
 
 def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibration:
-    """Stage 1 (core.calibration): for each candidate contact law, fit f0, the Q factors and the
-    effects' parameters from the YAML's guess; keep the law with the lowest loss."""
+    """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
+    support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
+    guess; keep the candidate with the lowest BIC."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print(
@@ -115,16 +120,19 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     start = Stage1(
         jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True)
     )
-    coordinates = Coordinates(start, stage1_flags(effects, fit_q))
+    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
     def describe(x: np.ndarray) -> str:
-        values = np.exp(np.asarray(coordinates.theta(x).log_f0))
-        return "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, values))
+        """f0 (the first free coordinates) and, when there are two more at the end, the support."""
+        text = "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, np.exp(x[: len(PARAMETER_NAMES)])))
+        if len(x) == len(start_coordinates.names) + len(SUPPORT_NAMES):
+            text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, x[-2:]))
+        return text
 
-    def problem(law: ContactLaw, records: Batch):
+    def problem(law: ContactLaw, records: Batch, coordinates: Coordinates = coordinates):
         """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
@@ -144,17 +152,39 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         )
         return guess, objective, coordinates.initial(log_f0=guess_log)
 
-    # Screen every candidate law to a loose tolerance on a few bags, then refine the best on all.
+    def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
+        """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
+        from the rigid fit theta_rigid: the best of a grid of supports, then all coordinates
+        together; None without axial contact."""
+        starts = support_starts(
+            config.law, *stage1_model_and_noise(theta_rigid, law_model(law), noise, scales), h, records
+        )
+        if not starts:
+            return None
+        with_support = Coordinates(
+            start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True)
+        )
+        objective = problem(law, records, with_support)[1]
+        kept = {"log_f0": theta_rigid.log_f0, "log_q": theta_rigid.log_q, "effects": theta_rigid.effects}
+        x0 = min(
+            (with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=lambda v: objective(v)[0]
+        )
+        x, convergence = minimise(objective, x0, settings.calibration_steps, tolerance, label, stream, describe)
+        return with_support, x, convergence
+
+    # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
+    # a loose tolerance on a few bags; refine the one of the lowest BIC on all.
     screen_data = data.subset(spread(len(data.records), settings.screening_bags))
     screen_batch = batch if len(screen_data.paths) == len(data.paths) else training_batch(config, screen_data, effects)
     if screen_batch is not batch:
         print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
-    screened = []
+    n_screen = int(np.sum(np.asarray(screen_batch.valid)))
+    screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
+    screened = []  # (BIC, law, coordinates, x, convergence, guess, yields)
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, screen_batch)
         x, convergence = minimise(
-            objective, x0, settings.calibration_steps, max(settings.tolerance, SCREEN_TOLERANCE),
-            f"calibrate {law.label}", stream, describe,
+            objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(coordinates.theta(x0), law_model(law), noise, scales)
@@ -165,34 +195,62 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        screened.append((convergence.final_loss, law, x, convergence, guess))
+        if settings.axial_support != "yielding":
+            screened.append(
+                (bic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence, guess, False)
+            )
+        if settings.axial_support != "rigid":
+            fitted = fit_support(
+                law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
+            )
+            if fitted is not None:
+                with_support, x_s, convergence_s = fitted
+                extra = len(SUPPORT_NAMES)
+                screened.append(
+                    (
+                        bic(convergence_s.final_loss, extra, n_screen, kind),
+                        law,
+                        with_support,
+                        x_s,
+                        convergence_s,
+                        guess,
+                        True,
+                    )
+                )
+    if not screened:
+        raise TrainingError(
+            f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
+            "cannot be fitted; set training.axial_support: auto or rigid"
+        )
     screened.sort(key=lambda t: t[0])
-    candidates = tuple({"law": t[1].label, "loss": t[0], "steps": t[3].steps} for t in screened)
-    _, law, x, _, guess = screened[0]
-    objective = problem(law, batch)[1]
+    best_bic = screened[0][0]
+
+    def named(t) -> str:
+        return t[1].label + (" + yielding support" if t[6] else "")
+
+    candidates = tuple(
+        {"law": named(t), "loss": t[4].final_loss, "bic_above_best": round(t[0] - best_bic, 3), "steps": t[4].steps}
+        for t in screened
+    )
+    _, law, coordinates, x, _, guess, _ = screened[0]
+    objective = problem(law, batch, coordinates)[1]
     if len(screened) > 1:
         print(
-            "contact laws by loss: "
-            + ", ".join(f"{c['law']} {c['loss']:.6g}" for c in candidates)
-            + f"; chosen: {law.label}",
+            "contact laws by BIC (above the best): "
+            + ", ".join(f"{c['law']} {c['bic_above_best']:.4g}" for c in candidates)
+            + f"; chosen: {named(screened[0])}",
             file=stream,
         )
-    x, convergence = minimise(
-        objective,
-        x,
-        settings.calibration_steps,
-        settings.tolerance,
-        f"calibrate {law.label}, refined",
-        stream,
-        describe,
-    )
-    require_convergence(convergence, f"stage 1 ({law.label})", data.paths, "-p training.calibration_steps:=N")
+    label = f"calibrate {named(screened[0])}, refined"
+    x, convergence = minimise(objective, x, settings.calibration_steps, settings.tolerance, label, stream, describe)
+    require_convergence(convergence, f"stage 1 ({named(screened[0])})", data.paths, "-p training.calibration_steps:=N")
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
+    law = law.with_support(float(model.law.support_preload), float(model.law.support_share))
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
@@ -204,6 +262,36 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+#: Where a yielding support's fit may start (the lowest loss is taken): preload as a share of the
+#: largest face force the rigid fit reaches in the data, and the share passed above it.
+SUPPORT_START_PRELOADS = (0.4, 0.55, 0.7, 0.85, 1.0)
+SUPPORT_START_SHARES = (0.02, 0.1, 0.3, 0.6)
+
+
+def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> list[np.ndarray]:
+    """ln preload (N) and ln share where stage 1 may start a yielding axial support: the YAML's when
+    it gives one, otherwise a grid below the largest face force of `model` on the filtered
+    records (only data above the preload move it, so it must start inside their range); none
+    without axial contact."""
+    if guess.yields:
+        return [np.log([float(guess.support_preload), float(guess.support_share)])]
+    states = np.asarray(filtered_states(model, noise, h, batch)[0])[np.asarray(batch.valid) > 0]
+    deepest = float(np.nanmax(-(states[:, 2] + model.rig.axial_clearance), initial=0.0))
+    peak = float(normal_force(model.law, model.nominal.k_Z, 0.0, jnp.asarray(deepest), 0.0)) if deepest > 0 else 0.0
+    if not peak > 0.0:
+        return []
+    return [np.log([f * peak, share]) for f in SUPPORT_START_PRELOADS for share in SUPPORT_START_SHARES]
+
+
+def bic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
+    """Bayesian information criterion of a stage-1 fit, up to a constant shared by the candidates:
+    -2 ln L + k ln N with k the parameters beyond the common ones. With the nll loss N J is
+    -2 ln L up to a constant; with the one-step loss (a sum of squares) -2 ln L is N ln J for
+    Gaussian errors of unknown variance."""
+    fit = n_valid * loss if kind == "nll" else n_valid * float(np.log(loss))
+    return float(fit + extra_parameters * np.log(n_valid))
 
 
 def spread(count: int, most: int) -> list[int]:

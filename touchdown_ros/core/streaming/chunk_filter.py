@@ -16,6 +16,7 @@ from jax import Array
 
 from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
+from touchdown_ros.core.estimate import force_covariance, force_model_variance
 from touchdown_ros.core.streaming.outputs import PACKED_WIDTH
 from touchdown_ros.core.types import FilterNoise, Model
 
@@ -51,6 +52,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
     measure = model_measurement(model)
+    model_variance = force_model_variance(model, noise, sample_period)
 
     def row(prior: Belief, eta: Array) -> tuple[Belief, Array]:
         filtered, innovation, S, used = update(prior, eta, R, measure)
@@ -65,7 +67,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
                 rate[4:],
                 (J @ filtered.cov @ J.T).reshape(9),
                 contact_force_xyz(forces),
-                (J_force @ filtered.cov @ J_force.T).reshape(9),
+                force_covariance(forces, J_force, filtered.cov, model_variance).reshape(9),
                 jnp.stack([forces.F_n, forces.F_t, forces.F_z]),
                 jnp.stack([forces.radial_contact, forces.axial_contact]).astype(eta.dtype),
                 innovation,
