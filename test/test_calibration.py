@@ -82,11 +82,11 @@ def test_config_reads_the_axial_support():
     from touchdown_ros.io.config import ConfigError, load_config
 
     assert not load_config().law.yields and load_config().training.axial_support == "auto"
-    law = load_config(overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_share": 0.25}).law
-    assert law.yields and (float(law.support_preload), float(law.support_share)) == (3.0e4, 0.25)
-    assert "support yields above 30 kN (share 0.25)" in law.label
-    with pytest.raises(ConfigError, match="support_share must be in"):
-        load_config(overrides={"contact.support_share": 1.5})
+    law = load_config(overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_span": 1.0e4}).law
+    assert law.yields and (float(law.support_preload), float(law.support_span)) == (3.0e4, 1.0e4)
+    assert "support yields above 30 kN (at most 40 kN)" in law.label
+    with pytest.raises(ConfigError, match="contact.support_span' must be a finite number"):
+        load_config(overrides={"contact.support_preload": 3.0e4})  # a preload needs its span
     with pytest.raises(ConfigError, match="training.axial_support"):
         load_config(overrides={"training.axial_support": "soft"})
 
