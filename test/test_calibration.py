@@ -125,9 +125,12 @@ def test_centres_are_placed_over_the_contact_samples():
 
 #: Peak force within this share of the truth on a held-out bag, after `touchdown train` with defaults.
 PEAK_TOLERANCE = 0.10
+#: stiff_quiet's radial peak, measured 13.1 % off (docs/calibration.md: the face friction is held by
+#: the prior), is held to this looser bound; its axial peak to PEAK_TOLERANCE.
+STIFF_QUIET_RADIAL_TOLERANCE = 0.20
 
 
-@pytest.fixture(scope="module", params=["soft_bearing", "slippery"])
+@pytest.fixture(scope="module", params=["soft_bearing", "slippery", "stiff_quiet"])
 def trained_rig(request, tmp_path_factory):
     """A family rig: 4 simulated bags, `touchdown train` with defaults on 3 (from the reference guess),
     `touchdown estimate` of the 4th with the coefficient file."""
@@ -164,8 +167,17 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth
-    assert abs(truth["peak_radial_force_error"]) < PEAK_TOLERANCE, truth
+    radial_tolerance = STIFF_QUIET_RADIAL_TOLERANCE if v.name == "stiff_quiet" else PEAK_TOLERANCE
+    assert abs(truth["peak_radial_force_error"]) < radial_tolerance, truth
     assert max(bag["rmse_displacement_m"]) < 1.2 * sigma
+    preload, span = document["contact"]["support_preload"], document["contact"]["support_span"]
+    if v.name == "stiff_quiet":
+        # its impacts reach the simulator's support, which yields above 36 kN and passes at most 46 kN:
+        # stage 1 chooses a yielding support with the knee inside the impacts' range (BIC) and Hertz 1.5
+        assert "support yields above" in calibration["law"] and calibration["law"].startswith("hertz n=1.5")
+        assert 25e3 < preload < 46e3 and preload + span < 60e3
+    elif v.name == "soft_bearing":
+        assert preload == float("inf")  # its impacts (26 kN) stay below the knee: the rigid support wins
 
 
 @pytest.fixture(scope="module")
