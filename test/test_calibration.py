@@ -87,12 +87,12 @@ def test_config_reads_the_axial_support():
 
     assert not load_config().law.yields and load_config().training.axial_support == "auto"
     law = load_config(
-        overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_share": 0.25}
+        overrides={"contact.law": "hertz", "contact.support_preload": 3.0e4, "contact.support_span": 1.0e4}
     ).law
-    assert law.yields and (float(law.support_preload), float(law.support_share)) == (3.0e4, 0.25)
-    assert "support yields above 30 kN (share 0.25)" in law.label
-    with pytest.raises(ConfigError, match="support_share must be in"):
-        load_config(overrides={"contact.support_share": 1.5})
+    assert law.yields and (float(law.support_preload), float(law.support_span)) == (3.0e4, 1.0e4)
+    assert "support yields above 30 kN (at most 40 kN)" in law.label
+    with pytest.raises(ConfigError, match="contact.support_span' must be a finite number"):
+        load_config(overrides={"contact.support_preload": 3.0e4})  # a preload needs its span
     with pytest.raises(ConfigError, match="training.axial_support"):
         load_config(overrides={"training.axial_support": "soft"})
 
@@ -131,9 +131,12 @@ def test_centres_are_placed_over_the_contact_samples():
 
 #: Peak force within this share of the truth on a held-out bag, after `touchdown train` with defaults.
 PEAK_TOLERANCE = 0.10
+#: stiff_quiet's radial peak, measured 13.1 % off (docs/calibration.md: the face friction is held by
+#: the prior), is held to this looser bound; its axial peak to PEAK_TOLERANCE.
+STIFF_QUIET_RADIAL_TOLERANCE = 0.20
 
 
-@pytest.fixture(scope="module", params=["soft_bearing", "slippery"])
+@pytest.fixture(scope="module", params=["soft_bearing", "slippery", "stiff_quiet"])
 def trained_rig(request, tmp_path_factory):
     """A family rig: 4 simulated bags, `touchdown train` with defaults on 3 (from the reference guess),
     `touchdown estimate` of the 4th with the coefficient file."""
@@ -187,8 +190,17 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth
-    assert abs(truth["peak_radial_force_error"]) < PEAK_TOLERANCE, truth
+    radial_tolerance = STIFF_QUIET_RADIAL_TOLERANCE if v.name == "stiff_quiet" else PEAK_TOLERANCE
+    assert abs(truth["peak_radial_force_error"]) < radial_tolerance, truth
     assert max(bag["rmse_displacement_m"]) < 1.2 * sigma
+    preload, span = document["contact"]["support_preload"], document["contact"]["support_span"]
+    if v.name == "stiff_quiet":
+        # its impacts reach the simulator's support, which yields above 36 kN and passes at most 46 kN:
+        # stage 1 chooses a yielding support with the knee inside the impacts' range (BIC) and Hertz 1.5
+        assert "support yields above" in calibration["law"] and calibration["law"].startswith("hertz n=1.5")
+        assert 25e3 < preload < 46e3 and preload + span < 60e3
+    elif v.name == "soft_bearing":
+        assert preload == float("inf")  # its impacts (26 kN) stay below the knee: the rigid support wins
 
 
 @pytest.fixture(scope="module")

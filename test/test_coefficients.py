@@ -75,7 +75,7 @@ def test_file_carries_its_calibration(tmp_path):
 
 
 def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
-    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 0.2)
+    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4)
     path = save_coefficients(
         tmp_path / "c.yaml",
         random_coeffs(),
@@ -86,13 +86,15 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
     rigid = save_coefficients(tmp_path / "rigid.yaml", random_coeffs(), CONFIG, TrainingRecord())
     document = yaml.safe_load(rigid.read_text())
     assert document["contact"]["support_preload"] == float("inf")  # written as .inf
-    del document["contact"]["support_preload"], document["contact"]["support_share"]  # a file of before: rigid
+    del document["contact"]["support_preload"], document["contact"]["support_span"]  # a file of before: rigid
     rigid.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
     assert not load_coefficients(rigid, CONFIG).config(CONFIG).law.yields
-    for preload, share in ((-1.0, 0.5), (3e4, 1.5), (3e4, float("nan")), ("x", 0.5)):
-        document["contact"].update(support_preload=preload, support_share=share)
+    for preload, span in ((-1.0, 1e4), (3e4, 0.0), (3e4, float("nan")), ("x", 1e4)):
+        document["contact"].update(support_preload=preload, support_span=span)
         rigid.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
-        with pytest.raises(CoefficientFileError, match=r"contact\.support_preload must be a number > 0"):
+        with pytest.raises(
+            CoefficientFileError, match=r"contact\.support_preload and contact\.support_span must be numbers > 0"
+        ):
             load_coefficients(rigid, CONFIG)
 
 

@@ -208,14 +208,15 @@ def test_force_std_is_finite_difference_jacobian_through_a_known_covariance(case
 
 
 @pytest.mark.parametrize("case", ["axial", "both"])
-def test_a_yielding_support_passes_its_share_of_the_face_force_above_the_preload(case):
+def test_a_yielding_support_passes_the_face_force_up_to_its_preload_then_creeps_to_preload_plus_span(case):
     xi = np.array(CASES[case])
     F_n, F_t, F_z, _, _ = hand_forces(xi)
     F_zZ = -NOMINAL.k_Z * (xi[2] + RIG.axial_clearance) - NOMINAL.c_Z * xi[6]
     rigid = make_model()
-    for preload, share in ((0.5 * F_zZ, 0.2), (0.9 * F_zZ, 0.0), (2.0 * F_zZ, 0.2)):
-        model = rigid._replace(law=rigid.law.with_support(preload, share))
-        passed = F_zZ if F_zZ <= preload else preload + share * (F_zZ - preload)
+    for preload, span in ((0.5 * F_zZ, 0.2 * F_zZ), (0.9 * F_zZ, 1e-9), (2.0 * F_zZ, 0.2 * F_zZ)):
+        model = rigid._replace(law=rigid.law.with_support(preload, span))
+        x = F_zZ - preload
+        passed = F_zZ if x <= 0 else preload + span * x / (span + x)
         forces = contact_forces(model, jnp.asarray(xi))
         assert float(forces.F_z) == pytest.approx(F_z - F_zZ + passed, rel=1e-12)
         assert float(forces.F_t) == pytest.approx(

@@ -50,16 +50,16 @@ class Stage1(NamedTuple):
     log_f0: Array  # (6,) ln of k_R, c_R, mu, k_Z, c_Z, k_ZR in the law's units
     log_q: Array  # (2,) ln of the factors on Q's radial and axial blocks
     effects: Effects  # active effects, parameters divided by their scales
-    log_support: Array | None = None  # (2,) ln of the axial support's preload (N) and share; None: the law's
+    log_support: Array | None = None  # (2,) ln of the axial support's preload and span (N); None: the law's
 
 
 #: Names of the axial support's coordinates (`Stage1.log_support`).
-SUPPORT_NAMES = ("support_preload", "support_share")
+SUPPORT_NAMES = ("support_preload", "support_span")
 
 
 def support_law(law: ContactLaw, log_support: Array) -> ContactLaw:
-    """`law` with the axial support of `log_support` (ln preload N, ln share; share at most 1)."""
-    return law.with_support(jnp.exp(log_support[0]), jnp.minimum(jnp.exp(log_support[1]), 1.0))
+    """`law` with the axial support of `log_support` (ln preload, ln span; N)."""
+    return law.with_support(jnp.exp(log_support[0]), jnp.exp(log_support[1]))
 
 
 def q_factors(log_q: Array) -> Array:

@@ -42,9 +42,11 @@ def normal_force(law: ContactLaw, k: Array, c: Array, deformation: Array, rate: 
 
 
 def yielding_support(law: ContactLaw, force: Array) -> Array:
-    """Face force (N) passed by the axial support: as it is up to the preload P, above it
-    P + rho (F - P) (a preloaded disc-spring support that yields). Exactly F when rigid (P = inf)."""
-    return force - (1.0 - law.support_share) * jnp.maximum(force - law.support_preload, 0.0)
+    """Face force (N) passed by the axial support: as it is up to the preload P; above it the
+    preloaded disc springs yield and pass P + S x / (S + x), x = F - P, creeping towards P + S
+    (degressive, with a continuous slope at the knee). Exactly F when rigid (P = inf)."""
+    excess = jnp.maximum(force - law.support_preload, 0.0)
+    return force - excess**2 / (law.support_span + excess)
 
 
 def contact_forces(model: Model, xi: Array) -> ContactForces:

@@ -46,17 +46,17 @@ class ContactLaw(NamedTuple):
     linear (the paper's eq. 6a, 8c): n = 1, m = 0, not floored; k in N/m, c in N s/m.
     hertz: n = m (1.5 for balls, 10/9 for rollers), floored (Hertz with Hunt-Crossley
     damping, F = d^n (k + c d_dot), never pulling); k in N/m^n, c in N s/m^(n+1).
-    The face force passes the bearing's axial support (`yielding_support`): rigid by default,
-    or preloaded (disc springs under the housing) so that above the preload P only a share
-    rho of any further force is passed. The exponents and the support are traced numbers, so
-    one compiled filter serves every law.
+    The face force passes the bearing's axial support (`dynamics.yielding_support`): rigid by
+    default, or preloaded disc springs under the housing that yield above the preload P and
+    pass at most P + S (degressive). The exponents and the support are traced numbers, so one
+    compiled filter serves every law.
     """
 
     stiffness_exponent: float = 1.0  # n
     damping_exponent: float = 0.0  # m
     floored: float = 0.0  # 1: the force never pulls; 0: as printed
     support_preload: float = float("inf")  # N, face force above which the axial support yields; inf: rigid
-    support_share: float = 1.0  # 1, share of the face force above the preload the yielding support passes
+    support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":
@@ -85,20 +85,19 @@ class ContactLaw(NamedTuple):
         """Whether the axial support yields (a finite preload)."""
         return bool(jnp.isfinite(self.support_preload))
 
-    def with_support(self, preload: float = float("inf"), share: float = 1.0) -> "ContactLaw":
-        """The same law with an axial support preloaded to `preload` (N; inf: rigid) passing `share` above it."""
-        return self._replace(support_preload=preload, support_share=share)
+    def with_support(self, preload: float = float("inf"), span: float = float("inf")) -> "ContactLaw":
+        """The same law with an axial support preloaded to `preload` (N; inf: rigid) that passes at most
+        preload + span (N)."""
+        return self._replace(support_preload=preload, support_span=span)
 
     @property
     def label(self) -> str:
-        """'linear', 'hertz n=1.5' or 'hertz n=1.5, support yields above 35.2 kN (share 0.12)'."""
+        """'linear', 'hertz n=1.5' or 'hertz n=1.5, support yields above 35.2 kN (at most 45.1 kN)'."""
         law = self.name if self.name == "linear" else f"{self.name} n={self.exponent:.4g}"
         if not self.yields:
             return law
-        return (
-            f"{law}, support yields above {float(self.support_preload) / 1e3:.3g} kN "
-            f"(share {float(self.support_share):.2g})"
-        )
+        preload, span = float(self.support_preload), float(self.support_span)
+        return f"{law}, support yields above {preload / 1e3:.3g} kN (at most {(preload + span) / 1e3:.3g} kN)"
 
 
 CONTACT_LAWS = ("linear", "hertz")

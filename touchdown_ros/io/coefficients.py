@@ -109,7 +109,7 @@ def save_coefficients(
             "law": config.law.name,
             "exponent": float(config.law.exponent),
             "support_preload": float(config.law.support_preload),  # N; .inf: a rigid axial support
-            "support_share": float(config.law.support_share),
+            "support_span": float(config.law.support_span),  # N, it passes at most preload + span
             "units": _contact_units(config),
             **{name: float(value) for name, value in config.nominal._asdict().items()},
         },
@@ -289,14 +289,12 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         law = ContactLaw.of(str(contact.get("law")), float(contact.get("exponent", 1.0)))
     except (TypeError, ValueError) as error:
         raise CoefficientFileError(f"{path}: contact.law / contact.exponent: {error}") from None
-    preload, share = contact.get("support_preload", np.inf), contact.get("support_share", 1.0)
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (preload, share)) or not (
-        preload > 0 and 0 < share <= 1 and np.isfinite(share)
-    ):
+    preload, span = contact.get("support_preload", np.inf), contact.get("support_span", np.inf)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in (preload, span)):
         raise CoefficientFileError(
-            f"{path}: contact.support_preload must be a number > 0 (.inf: rigid) and contact.support_share in (0, 1]"
+            f"{path}: contact.support_preload and contact.support_span must be numbers > 0 N (.inf: rigid)"
         )
-    law = law.with_support(float(preload), float(share))
+    law = law.with_support(float(preload), float(span))
     values = []
     for name in Nominal._fields:
         value = contact.get(name)

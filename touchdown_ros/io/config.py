@@ -310,19 +310,15 @@ def parse_contact_law(text: str) -> ContactLaw:
 
 def _contact_law(read: ParameterReader) -> ContactLaw:
     """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5) and the axial
-    support: contact.support_preload (N, default .inf: rigid) and contact.support_share (0-1]."""
+    support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
-    rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support
+    given = read._get("contact.support_preload", math.inf), read._get("contact.support_span", math.inf)
+    rigid = given[0] == math.inf  # .inf in YAML: a rigid support (its span then plays no part)
     preload = math.inf if rigid else read.number("contact.support_preload", positive=True)
-    share = read.number("contact.support_share", 1.0, positive=True)
-    if share > 1.0:
-        raise ConfigError(
-            f"{read.source}: contact.support_share must be in (0, 1] (share of the force above the preload), "
-            f"got {share}"
-        )
+    span = math.inf if rigid else read.number("contact.support_span", positive=True)
     try:
-        return ContactLaw.of(name, exponent).with_support(preload, share)
+        return ContactLaw.of(name, exponent).with_support(preload, span)
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 

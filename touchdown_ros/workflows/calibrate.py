@@ -250,7 +250,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
-    law = law.with_support(float(model.law.support_preload), float(model.law.support_share))
+    law = law.with_support(float(model.law.support_preload), float(model.law.support_span))
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
@@ -264,10 +264,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
 
 
-#: Where a yielding support's fit may start (the lowest loss is taken): preload as a share of the
-#: largest face force the rigid fit reaches in the data, and the share passed above it.
+#: Where a yielding support's fit may start (the lowest loss is taken): preload and span as shares
+#: of the largest face force the rigid fit reaches in the data.
 SUPPORT_START_PRELOADS = (0.4, 0.55, 0.7, 0.85, 1.0)
-SUPPORT_START_SHARES = (0.02, 0.1, 0.3, 0.6)
+SUPPORT_START_SPANS = (0.05, 0.15, 0.4, 1.0)
 
 
 def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> list[np.ndarray]:
@@ -276,13 +276,13 @@ def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float
     records (only data above the preload move it, so it must start inside their range); none
     without axial contact."""
     if guess.yields:
-        return [np.log([float(guess.support_preload), float(guess.support_share)])]
+        return [np.log([float(guess.support_preload), float(guess.support_span)])]
     states = np.asarray(filtered_states(model, noise, h, batch)[0])[np.asarray(batch.valid) > 0]
     deepest = float(np.nanmax(-(states[:, 2] + model.rig.axial_clearance), initial=0.0))
     peak = float(normal_force(model.law, model.nominal.k_Z, 0.0, jnp.asarray(deepest), 0.0)) if deepest > 0 else 0.0
     if not peak > 0.0:
         return []
-    return [np.log([f * peak, share]) for f in SUPPORT_START_PRELOADS for share in SUPPORT_START_SHARES]
+    return [np.log([f * peak, g * peak]) for f in SUPPORT_START_PRELOADS for g in SUPPORT_START_SPANS]
 
 
 def bic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
