@@ -100,12 +100,6 @@ def thrust_bags(tmp_path_factory):
     return _simulate(tmp_path_factory.mktemp("thrust"), (1, 2), axial_thrust=1500.0)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 16: from a calibrated constant model the workbench ranks the load first but sizes it low on these "
-    "bags of the reference rig: FROLS 1084 N, fitted with the constants 1441 N for 2000 N in exp_09 (the family's "
-    "soft_bearing rig: within 5 %, test below); the trainer's own fit is within 10 %",
-)
 def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, tmp_path):
     bags, truths = load_bags
     loads = {name: t.axial_load for name, t in truths.items()}
