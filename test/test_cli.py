@@ -141,9 +141,11 @@ def test_estimate_writes_bag_summary_and_figures(estimate_dir):
         assert series is not None and len(series.stamps_ns) > 1400, topic
     summary = json.loads((estimate_dir / "summary.json").read_text())
     (bag_summary,) = summary["bags"].values()
-    assert max(bag_summary["rmse_displacement_m"]) < 20e-6  # the paper's 0.02 mm
+    # measured 2026-11-24 with the reference guess (constant model): 5.8 um and 5.4 mm/s; bounds with ~1.4x margin
+    # (the paper's figure is 0.02 mm)
+    assert max(bag_summary["rmse_displacement_m"]) < 8e-6
     truth = bag_summary["truth"]
-    assert np.linalg.norm(truth["rmse_velocity_mps"]) < 0.02
+    assert np.linalg.norm(truth["rmse_velocity_mps"]) < 8e-3
     for name in ("displacement.png", "velocity.png", "contact_force.png"):
         assert (estimate_dir / "figures" / "exp_11" / name).stat().st_size > 10_000
 
