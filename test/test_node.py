@@ -402,10 +402,21 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     np.testing.assert_array_equal(stamps, expected.stamps_ns)
     field = {name: i for i, name in enumerate(messages.BATCH_OUTPUT_FIELDS)}
     filtered = expected.filtered
-    for names, values in ((("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:]),
-                          (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
-                          (("fx", "fy", "fz"), np.asarray(filtered.force_xyz)),
-                          (("std_fx", "std_fy", "std_fz"), force_std(np.asarray(filtered.force_cov)))):
+    compared = ((("x", "y", "z"), np.asarray(filtered.state)[:, :3]),
+                (("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:]),
+                (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
+                (("fx", "fy", "fz"), np.asarray(filtered.force_xyz)),
+                (("fn", "ft"), np.column_stack([filtered.F_n, filtered.F_t])),
+                (("nis",), np.asarray(expected.nis)[:, None]),
+                (("var_vx", "var_vy", "var_vz"),
+                 np.diagonal(np.asarray(filtered.state_cov)[:, 4:, 4:], axis1=1, axis2=2)),
+                (("var_ax", "var_ay", "var_az"), np.diagonal(np.asarray(filtered.acceleration_cov), axis1=1, axis2=2)),
+                (("radial_contact", "axial_contact"),
+                 np.column_stack([filtered.radial_contact, filtered.axial_contact]).astype(float)),
+                (("std_fx", "std_fy", "std_fz"), force_std(np.asarray(filtered.force_cov))))
+    # every field of the batched output but t (checked through the stamps above), each against the offline estimate
+    assert {n for names, _ in compared for n in names} == set(messages.BATCH_OUTPUT_FIELDS) - {"t"}
+    for names, values in compared:
         assert_close(columns[:, [field[n] for n in names]], values, "/".join(names))
 
 
