@@ -17,7 +17,7 @@ from touchdown_ros.core.dynamics import (
 )
 from touchdown_ros.core.ekf import Belief, ekf, model_transition, predict, predict_with_rate, rts_smoother
 from touchdown_ros.core.estimate import DropDetector, GridError, force_model_variance, force_std, signals, to_grid
-from touchdown_ros.core.pkbkr import rkhs_distance
+from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters, rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
 from touchdown_ros.io.config import load_config
 
@@ -120,6 +120,57 @@ def test_learned_parameters_at_one_state_match_a_hand_kernel():
     expected_F_n = k_R * (r - RIG.radial_clearance) + NOMINAL.c_R * rdot
     got = contact_forces(make_model(coeffs), jnp.asarray(xi)).F_n
     np.testing.assert_allclose(float(got), expected_F_n, rtol=1e-12)
+
+
+def _hand_parameters(f0s, alpha, T, scale, width, deformation, velocity):
+    """p = f0 * (1 + Q alpha) with Q_i = exp(-|s - t_i|^2 / (2 w^2)), s = (deformation, velocity) / scale,
+    before and after the floor at 0; one row per parameter, one column per state."""
+    s = np.stack([deformation / scale[0], velocity / scale[1]], axis=-1)
+    Q = np.exp(-np.sum((s[:, None, :] - T[None]) ** 2, axis=-1) / (2.0 * width**2))
+    raw = np.array([f0 * (1.0 + Q @ a) for f0, a in zip(f0s, alpha)])
+    return raw, np.maximum(raw, 0.0)
+
+
+@pytest.mark.parametrize("negative", [False, True], ids=["positive", "floored"])
+def test_all_six_parameter_functions_match_a_hand_kernel_of_width_0_7(negative):
+    """Each of k_R, c_R, mu, k_Z, c_Z, k_ZR with its own alpha, a kernel width other than 1, states on and
+    between the centres; the negative case drives f0 * (1 + Q alpha) below 0 where the floor must give 0."""
+    kernel = CONFIG.kernel._replace(width=0.7)
+    T_R, T_Z = np.asarray(kernel.T_R), np.asarray(kernel.T_Z)
+    scale_R, scale_Z = np.asarray(kernel.scale_R), np.asarray(kernel.scale_Z)
+    rng = np.random.default_rng(18)
+    alpha_R = 0.1 * rng.standard_normal((3, T_R.shape[0]))
+    alpha_Z = 0.1 * rng.standard_normal((3, T_Z.shape[0]))
+    if negative:  # strongly negative on the centres of large deformation only
+        alpha_R[:, T_R[:, 0] > np.median(T_R[:, 0])] -= 2.0
+        alpha_Z[:, T_Z[:, 0] > np.median(T_Z[:, 0])] -= 2.0
+    coeffs = Coefficients(alpha_R=jnp.asarray(alpha_R), alpha_Z=jnp.asarray(alpha_Z))
+    n = 40
+    deformation_R = scale_R[0] * rng.uniform(T_R[:, 0].min(), T_R[:, 0].max(), n)
+    velocity_R = scale_R[1] * rng.uniform(T_R[:, 1].min(), T_R[:, 1].max(), n)
+    deformation_Z = scale_Z[0] * rng.uniform(T_Z[:, 0].min(), T_Z[:, 0].max(), n)
+    velocity_Z = scale_Z[1] * rng.uniform(T_Z[:, 1].min(), T_Z[:, 1].max(), n)
+
+    raw_R, want_R = _hand_parameters(
+        (NOMINAL.k_R, NOMINAL.c_R, NOMINAL.mu), alpha_R, T_R, scale_R, 0.7, deformation_R, velocity_R
+    )
+    raw_Z, want_Z = _hand_parameters(
+        (NOMINAL.k_Z, NOMINAL.c_Z, NOMINAL.k_ZR), alpha_Z, T_Z, scale_Z, 0.7, deformation_Z, velocity_Z
+    )
+    got_R = radial_parameters(kernel, NOMINAL, coeffs, jnp.asarray(deformation_R), jnp.asarray(velocity_R))
+    got_Z = axial_parameters(kernel, NOMINAL, coeffs, jnp.asarray(deformation_Z), jnp.asarray(velocity_Z))
+    f0s = (NOMINAL.k_R, NOMINAL.c_R, NOMINAL.mu, NOMINAL.k_Z, NOMINAL.c_Z, NOMINAL.k_ZR)
+    for name, f0, got, raw, want in zip(
+        ("k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"), f0s, (*got_R, *got_Z), (*raw_R, *raw_Z), (*want_R, *want_Z)
+    ):
+        # each parameter is moved by its own alpha, well beyond the tolerance
+        assert np.max(np.abs(raw / f0 - 1.0)) > 0.05, name
+        if negative:
+            assert np.sum(raw < 0) >= 5 and np.sum(raw > 0) >= 1, name  # the floor acts on some states only
+            assert np.all(np.asarray(got)[raw < 0] == 0.0), name
+        else:
+            assert np.all(raw > 0), name
+        np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12, atol=1e-12 * f0, err_msg=name)
 
 
 def test_axial_kernel_input_is_the_compression():
