@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from touchdown_ros.core.dynamics import rk4_step
-from touchdown_ros.core.training import loss, make_batch
+from touchdown_ros.core.training import loss, make_batch, prediction_errors
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.train import TrainingData, fit
@@ -48,6 +48,42 @@ def test_loss_gradient_matches_finite_differences():
         minus = coeffs._replace(**{field: getattr(coeffs, field).at[index].add(-step)})
         fd = (float(f(plus)) - float(f(minus))) / (2 * step)
         assert np.isclose(float(getattr(grad, field)[index]), fd, rtol=1e-4, atol=1e-6), (field, index)
+
+
+def test_loss_is_the_mean_output_error_plus_lambda_times_the_rkhs_distance():
+    """Eq. 18 taken apart: loss = sum over valid samples of |eta - h(xi_-)|^2 / sigma^2 divided by their
+    number, + lambda * sum_k alpha_k^T K alpha_k with K = Q(T, T) written out here, not taken from pkbkr."""
+    records = records_of(true_coeffs(), count=2, samples=120)
+    batch = make_batch(records, np.asarray(CONFIG.noise.initial))
+    model = CONFIG.model()
+    rng = np.random.default_rng(18)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    coeffs = Coefficients(
+        0.3 * rng.standard_normal(zeros.alpha_R.shape), 0.3 * rng.standard_normal(zeros.alpha_Z.shape)
+    )
+    kernel = CONFIG.kernel
+
+    def gram(T):
+        T = np.asarray(T)
+        return np.exp(-np.sum((T[:, None] - T[None]) ** 2, axis=-1) / (2.0 * kernel.width**2))
+
+    distance = sum(
+        float(a @ gram(T) @ a)
+        for alpha, T in ((coeffs.alpha_R, kernel.T_R), (coeffs.alpha_Z, kernel.T_Z))
+        for a in np.asarray(alpha)
+    )
+    assert distance > 1.0
+
+    errors = np.asarray(prediction_errors(model._replace(coeffs=coeffs), CONFIG.noise, H, batch))
+    valid = np.asarray(batch.valid)
+    data = np.sum((errors**2 / np.asarray(CONFIG.noise.measurement))[valid]) / np.sum(valid)
+
+    lam1, lam2 = 1e-3, 0.25
+    loss1 = float(loss(coeffs, model, CONFIG.noise, H, batch, lam1))
+    loss2 = float(loss(coeffs, model, CONFIG.noise, H, batch, lam2))
+    np.testing.assert_allclose(loss2 - loss1, (lam2 - lam1) * distance, rtol=1e-9)
+    np.testing.assert_allclose(loss1, data + lam1 * distance, rtol=1e-9)
+    np.testing.assert_allclose(float(loss(coeffs, model, CONFIG.noise, H, batch, 0.0)), data, rtol=1e-9)
 
 
 def test_fit_recovers_the_loss_of_the_true_model():
