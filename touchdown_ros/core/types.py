@@ -1,6 +1,7 @@
 """Typed containers of the estimator's model; all are JAX pytrees (NamedTuples), SI units."""
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -83,7 +84,7 @@ class ContactLaw(NamedTuple):
     @property
     def yields(self) -> bool:
         """Whether the axial support yields (a finite preload)."""
-        return bool(jnp.isfinite(self.support_preload))
+        return math.isfinite(float(self.support_preload))
 
     def with_support(self, preload: float = float("inf"), span: float = float("inf")) -> "ContactLaw":
         """The same law with an axial support preloaded to `preload` (N; inf: rigid) that passes at most

@@ -313,8 +313,8 @@ def _contact_law(read: ParameterReader) -> ContactLaw:
     support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
-    given = read._get("contact.support_preload", math.inf), read._get("contact.support_span", math.inf)
-    rigid = given[0] == math.inf  # .inf in YAML: a rigid support (its span then plays no part)
+    rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support
+    read._get("contact.support_span", math.inf)  # read (a known key) also when rigid, where it plays no part
     preload = math.inf if rigid else read.number("contact.support_preload", positive=True)
     span = math.inf if rigid else read.number("contact.support_span", positive=True)
     try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -59,7 +59,7 @@ class Calibration:
     held_by_prior: tuple[str, ...]  # parameters the data hardly inform (posterior sd >= HELD_BY_PRIOR prior sd)
     correlations: tuple[tuple[str, str, float], ...]  # strongest correlations of the stage-1 estimates
     convergence: Convergence
-    candidates: tuple[dict[str, Any], ...]  # every law screened: label, loss, steps (lowest loss first)
+    candidates: tuple[dict[str, Any], ...]  # every law x support screened: label, loss, BIC above the best, steps
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
 
     def summary(self) -> dict[str, Any]:
@@ -180,7 +180,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
-    screened = []  # (BIC, law, coordinates, x, convergence, guess, yields)
+    screened: list[Candidate] = []
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, screen_batch)
         x, convergence = minimise(
@@ -196,54 +196,39 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
         if settings.axial_support != "yielding":
-            screened.append(
-                (bic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence, guess, False)
-            )
+            screened.append(Candidate(bic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence))
         if settings.axial_support != "rigid":
             fitted = fit_support(
                 law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
             )
             if fitted is not None:
                 with_support, x_s, convergence_s = fitted
-                extra = len(SUPPORT_NAMES)
-                screened.append(
-                    (
-                        bic(convergence_s.final_loss, extra, n_screen, kind),
-                        law,
-                        with_support,
-                        x_s,
-                        convergence_s,
-                        guess,
-                        True,
-                    )
-                )
+                score = bic(convergence_s.final_loss, len(SUPPORT_NAMES), n_screen, kind)
+                screened.append(Candidate(score, law, with_support, x_s, convergence_s, yields=True))
     if not screened:
         raise TrainingError(
             f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
             "cannot be fitted; set training.axial_support: auto or rigid"
         )
-    screened.sort(key=lambda t: t[0])
-    best_bic = screened[0][0]
-
-    def named(t) -> str:
-        return t[1].label + (" + yielding support" if t[6] else "")
-
+    screened.sort(key=lambda c: c.bic)
+    best = screened[0]
     candidates = tuple(
-        {"law": named(t), "loss": t[4].final_loss, "bic_above_best": round(t[0] - best_bic, 3), "steps": t[4].steps}
-        for t in screened
+        {"law": c.name, "loss": c.convergence.final_loss, "bic_above_best": round(c.bic - best.bic, 3),
+         "steps": c.convergence.steps}
+        for c in screened
     )
-    _, law, coordinates, x, _, guess, _ = screened[0]
-    objective = problem(law, batch, coordinates)[1]
+    law, coordinates, x = best.law, best.coordinates, best.x
+    guess, objective = problem(law, batch, coordinates)[:2]
     if len(screened) > 1:
         print(
             "contact laws by BIC (above the best): "
             + ", ".join(f"{c['law']} {c['bic_above_best']:.4g}" for c in candidates)
-            + f"; chosen: {named(screened[0])}",
+            + f"; chosen: {best.name}",
             file=stream,
         )
-    label = f"calibrate {named(screened[0])}, refined"
+    label = f"calibrate {best.name}, refined"
     x, convergence = minimise(objective, x, settings.calibration_steps, settings.tolerance, label, stream, describe)
-    require_convergence(convergence, f"stage 1 ({named(screened[0])})", data.paths, "-p training.calibration_steps:=N")
+    require_convergence(convergence, f"stage 1 ({best.name})", data.paths, "-p training.calibration_steps:=N")
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
@@ -264,6 +249,21 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
 
 
+class Candidate(NamedTuple):
+    """One screened stage-1 fit: a contact law, rigid or with a yielding axial support."""
+
+    bic: float
+    law: ContactLaw
+    coordinates: Coordinates
+    x: np.ndarray  # its free coordinates at the end of the screening fit
+    convergence: Convergence
+    yields: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.law.label + (" + yielding support" if self.yields else "")
+
+
 #: Where a yielding support's fit may start (the lowest loss is taken): preload and span as shares
 #: of the largest face force the rigid fit reaches in the data.
 SUPPORT_START_PRELOADS = (0.4, 0.55, 0.7, 0.85, 1.0)
@@ -271,7 +271,7 @@ SUPPORT_START_SPANS = (0.05, 0.15, 0.4, 1.0)
 
 
 def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float, batch: Batch) -> list[np.ndarray]:
-    """ln preload (N) and ln share where stage 1 may start a yielding axial support: the YAML's when
+    """ln preload and ln span (N) where stage 1 may start a yielding axial support: the YAML's when
     it gives one, otherwise a grid below the largest face force of `model` on the filtered
     records (only data above the preload move it, so it must start inside their range); none
     without axial contact."""
