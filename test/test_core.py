@@ -15,7 +15,16 @@ from touchdown_ros.core.dynamics import (
     step_with_jacobian,
     transition_jacobian,
 )
-from touchdown_ros.core.ekf import Belief, ekf, model_transition, predict, predict_with_rate, rts_smoother
+from touchdown_ros.core.ekf import (
+    Belief,
+    ekf,
+    extended_kalman_filter,
+    model_transition,
+    position,
+    predict,
+    predict_with_rate,
+    rts_smoother,
+)
 from touchdown_ros.core.estimate import DropDetector, GridError, force_model_variance, force_std, signals, to_grid
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters, rkhs_distance
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
@@ -474,6 +483,61 @@ def test_smoother_beats_filter_on_velocity():
     err_s = np.sqrt(np.mean((np.asarray(smoothed.mean)[:, radial] - states[:, radial]) ** 2))
     assert err_s < err_f
     np.testing.assert_array_equal(np.asarray(smoothed.mean[-1]), np.asarray(out.filtered.mean[-1]))
+
+
+def _random_covariance(rng, n, scale):
+    A = rng.standard_normal((n, n))
+    return scale * (A @ A.T + n * np.eye(n))
+
+
+def test_filter_and_smoother_equal_a_hand_written_linear_rts():
+    """A 6-state constant-velocity model, 3 positions measured: the library's filter and RTS smoother
+    against the textbook Kalman filter and Rauch-Tung-Striebel recursion written out in numpy."""
+    rng = np.random.default_rng(7)
+    n, m, N, h = 6, 3, 50, 0.1
+    F = np.block([[np.eye(3), h * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+    H = np.eye(m, n)
+    Q, R, P0 = _random_covariance(rng, n, 1e-3), _random_covariance(rng, m, 1e-2), _random_covariance(rng, n, 1.0)
+    m0 = rng.standard_normal(n)
+    x = m0 + np.linalg.cholesky(P0) @ rng.standard_normal(n)
+    etas = np.empty((N, m))
+    for k in range(N):
+        etas[k] = H @ x + np.linalg.cholesky(R) @ rng.standard_normal(m)
+        x = F @ x + np.linalg.cholesky(Q) @ rng.standard_normal(n)
+    etas[23] = np.nan  # a missing sample: predicted through, not used
+
+    # the reference: prior -> update with eta_k -> predict, as the library's convention
+    m_f, P_f = np.empty((N, n)), np.empty((N, n, n))
+    mean, cov = m0, P0
+    for k in range(N):
+        if np.all(np.isfinite(etas[k])):
+            S = H @ cov @ H.T + R
+            K = cov @ H.T @ np.linalg.inv(S)
+            mean = mean + K @ (etas[k] - H @ mean)
+            cov = (np.eye(n) - K @ H) @ cov
+        m_f[k], P_f[k] = mean, cov
+        mean, cov = F @ mean, F @ cov @ F.T + Q
+    m_s, P_s = m_f.copy(), P_f.copy()
+    for k in range(N - 2, -1, -1):
+        m_pred, P_pred = F @ m_f[k], F @ P_f[k] @ F.T + Q
+        G = P_f[k] @ F.T @ np.linalg.inv(P_pred)
+        m_s[k] = m_f[k] + G @ (m_s[k + 1] - m_pred)
+        P_s[k] = P_f[k] + G @ (P_s[k + 1] - P_pred) @ G.T
+
+    transition = lambda xi: (jnp.asarray(F) @ xi, jnp.asarray(F))  # noqa: E731
+    initial = Belief(jnp.asarray(m0), jnp.asarray(P0))
+    out = extended_kalman_filter(transition, position, jnp.asarray(Q), jnp.asarray(R), initial, jnp.asarray(etas))
+    smoothed = rts_smoother(out)
+    assert not bool(out.used[23]) and bool(np.all(np.delete(np.asarray(out.used), 23)))
+
+    def relative(ours, reference):
+        return np.max(np.abs(np.asarray(ours) - reference)) / np.max(np.abs(reference))
+
+    assert relative(out.filtered.mean, m_f) < 1e-9
+    assert relative(out.filtered.cov, P_f) < 1e-9
+    assert relative(smoothed.mean, m_s) < 1e-9
+    assert relative(smoothed.cov, P_s) < 1e-9
+    assert relative(smoothed.mean[:-1], m_f[:-1]) > 1e-3  # the smoother does change the estimates
 
 
 def test_grid_fills_gaps_and_refuses_off_grid_stamps():
