@@ -1,5 +1,8 @@
 """Bags written here round-trip bit-exactly, are read by the mcap package, the whole-array CDR
 codec equals rosbags' per-message serde, bad bags are named, and writes are atomic."""
+import errno
+from pathlib import Path
+
 import yaml
 import numpy as np
 import pytest
@@ -531,6 +534,36 @@ def test_overwrite_is_refused_unless_asked_and_then_atomic(tmp_path, monkeypatch
         assert read_displacement(target).xyz.tobytes() == xyz.tobytes()  # the old bag is intact
         write_bag(target, [TopicSeries("/amb/displacement", "PointStamped", stamps, 2 * xyz)], overwrite=True)
         assert read_displacement(target).xyz.tobytes() == (2 * xyz).tobytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "bare.mcap"]
+    assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == ["bag.mcap", "metadata.yaml"]
+
+
+@pytest.mark.parametrize("failure", [OSError(errno.EIO, "injected: rename failed"), KeyboardInterrupt()],
+                         ids=["OSError", "KeyboardInterrupt"])
+def test_overwrite_failing_between_the_two_renames_puts_the_old_bag_back(tmp_path, monkeypatch, failure):
+    """Without renameat2 the old bag is moved aside, then the new one renamed into place: a failure of
+    the second step leaves the old bag at path (write_bag's promise), the staging directory removed."""
+    monkeypatch.setattr(atomic_install, "_renameat2", lambda *args: False)
+    stamps, xyz = displacement(30)
+    for target in (tmp_path / "bag", tmp_path / "bare.mcap"):
+        write_bag(target, [TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)])
+        rename, calls = atomic_install.os.rename, []
+
+        def failing_rename(src, dst, *args, **kwargs):
+            calls.append((Path(src), Path(dst)))
+            if Path(dst) == target and Path(src).name == target.name:  # the new bag, into place
+                raise failure
+            return rename(src, dst, *args, **kwargs)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(atomic_install.os, "rename", failing_rename)
+            with pytest.raises(type(failure)) as raised:
+                write_bag(target, [TopicSeries("/amb/displacement", "PointStamped", stamps, 3 * xyz)], overwrite=True)
+        assert raised.value is failure  # the original exception, not a replacement
+        assert read_displacement(target).xyz.tobytes() == xyz.tobytes()  # the old bag, back at its path
+        moved_aside, into_place = calls[:2]  # the failure came between the two renames
+        assert moved_aside[0] == target and moved_aside[1] != target and into_place[1] == target
+        assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left behind
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "bare.mcap"]
     assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == ["bag.mcap", "metadata.yaml"]
 
