@@ -27,7 +27,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh
 
-from touchdown_ros.core.dynamics import polar
+from touchdown_ros.core.diagnostics.breakdown import deformations
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.training import Batch, output_error
@@ -336,12 +336,8 @@ def contact_samples(
     """(radial deformation r - r0, rdot) and (axial compression -(z + z0), zdot) of states (..., 7),
     flattened, m and m/s (the kernel inputs rho and zeta of eq. 10)."""
     states = np.asarray(states).reshape(-1, 7)
-    states = states[np.all(np.isfinite(states), axis=1)]
-    r, cos_a, sin_a = (np.asarray(v) for v in polar(states[:, 0], states[:, 1]))
-    rdot = cos_a * states[:, 4] + sin_a * states[:, 5]
-    radial = (r - model.rig.radial_clearance, rdot)
-    axial = (-(states[:, 2] + model.rig.axial_clearance), states[:, 6])
-    return radial, axial
+    radial, rdot, axial, zdot = deformations(model.rig, states[np.all(np.isfinite(states), axis=1)])
+    return (radial, rdot), (axial, zdot)
 
 
 def kernel_from_data(
