@@ -15,7 +15,7 @@ parameters and a change of which effects are active recompiles. With no effects
 (the default) phi and h are the paper's model unchanged, at the same cost.
 
 Library (`LIBRARY`): force effects axial_load, radial_load, magnetic_stiffness,
-contact_exponent, viscous_friction, contact_angle_coupling, brake_decay; measurement
+cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupling, brake_decay; measurement
 effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
 gain * position + offset on that axis.
 
@@ -182,6 +182,11 @@ def _magnetic_stiffness(xi, p, rig):
     return jnp.stack([p["k_radial"] * xi[X], p["k_radial"] * xi[Y], p["k_axial"] * xi[Z]])
 
 
+def _cross_coupled_stiffness(xi, p, rig):
+    """Seal / fluid cross-coupled stiffness: force q (-y, x), tangential, driving forward whirl for q > 0."""
+    return jnp.stack([-p["q"] * xi[Y], p["q"] * xi[X], 0.0 * xi[Z]])
+
+
 def _contact_exponent(xi, p, rig):
     """Hertz-like correction of the axial contact: + K d^n (d axial deformation) in contact."""
     d = -(xi[Z] + rig.axial_clearance)
@@ -252,6 +257,12 @@ LIBRARY: dict[str, Effect] = {
                 "k_axial": (1.0e5, "N/m", "axial negative stiffness"),
             },
             _magnetic_stiffness.__doc__,
+        ),
+        Effect(
+            "cross_coupled_stiffness",
+            _cross_coupled_stiffness,
+            {"q": (1.0e5, "N/m", "cross-coupled stiffness (tangential force per radial displacement)")},
+            _cross_coupled_stiffness.__doc__,
         ),
         Effect(
             "contact_exponent",

@@ -36,6 +36,16 @@ _SCALARS: dict[str, tuple[float, float, float, bool]] = {
     "axial_mount_preload": (3.6e4, 0.0, math.inf, False),
     "axial_mount_span": (1.0e4, 0.0, math.inf, False),
     "regularisation_velocity": (0.01, 0.0, 1.0, False),
+    # hidden effects the paper's model lacks (physics.Truth), all off on the reference rig
+    "radial_load_x": (0.0, -math.inf, math.inf, True),
+    "radial_load_y": (0.0, -math.inf, math.inf, True),
+    "magnetic_stiffness_radial": (0.0, 0.0, math.inf, True),
+    "magnetic_stiffness_axial": (0.0, 0.0, math.inf, True),
+    "rotor_drag_radial": (0.0, 0.0, math.inf, True),
+    "rotor_drag_axial": (0.0, 0.0, math.inf, True),
+    "cross_coupled_stiffness": (0.0, -math.inf, math.inf, True),
+    "contact_angle_tan": (0.0, 0.0, 1.0, True),
+    "twice_per_rev_force": (0.0, 0.0, math.inf, True),
     **{f"sensor_gain_{axis}": (1.0, 0.0, 10.0, False) for axis in "xyz"},
     **{f"sensor_offset_{axis}": (0.0, -0.01, 0.01, True) for axis in "xyz"},
 }
@@ -228,8 +238,22 @@ def truth_constants(
         linear_damping=1.0 if params.damping_law == "linear" else 0.0,
         radial_viscous_damping=values["radial_viscous_damping"],
         axial_viscous_damping=values["axial_viscous_damping"],
+        **{name: values[name] for name in HIDDEN_EFFECTS},
     )
 
+
+#: hidden effects the paper's model lacks: `simulator.<name>` keys passed to physics.Truth as they are.
+HIDDEN_EFFECTS = (
+    "radial_load_x",
+    "radial_load_y",
+    "magnetic_stiffness_radial",
+    "magnetic_stiffness_axial",
+    "rotor_drag_radial",
+    "rotor_drag_axial",
+    "cross_coupled_stiffness",
+    "contact_angle_tan",
+    "twice_per_rev_force",
+)
 
 #: h * rate below which classical RK4 is stable with margin (its limit is ~2.8 on the real and imaginary axes).
 _RK4_LIMIT = 2.5

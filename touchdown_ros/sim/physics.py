@@ -84,6 +84,16 @@ class Truth(NamedTuple):
     linear_damping: float = 0.0  # 1.0: Kelvin-Voigt K d^n + C d_dot; 0.0: Hunt-Crossley K d^n (1 + D d_dot)
     radial_viscous_damping: float = 5.0e4  # C_R, N s/m (Kelvin-Voigt only)
     axial_viscous_damping: float = 5.0e4  # C_Z, N s/m (Kelvin-Voigt only)
+    # Effects the paper's model lacks, each zero on the reference rig (hidden effects for the workbench):
+    radial_load_x: float = 0.0  # N, constant side load along x (the AMB cancels it while levitated)
+    radial_load_y: float = 0.0  # N, constant side load along y
+    magnetic_stiffness_radial: float = 0.0  # N/m, negative stiffness left by the magnets: k x outward
+    magnetic_stiffness_axial: float = 0.0  # N/m, the same along z
+    rotor_drag_radial: float = 0.0  # N s/m, viscous drag on the rotor centre (seals, windage), x and y
+    rotor_drag_axial: float = 0.0  # N s/m, the same along z
+    cross_coupled_stiffness: float = 0.0  # q, N/m: seal / fluid force q (-y, x), driving forward whirl
+    contact_angle_tan: float = 0.0  # tan(beta), 1: the bore contact also pushes up, tan(beta) F_nR
+    twice_per_rev_force: float = 0.0  # N, radial force A (cos 2 theta, sin 2 theta) (a misaligned coupling)
 
 
 class Contact(NamedTuple):
@@ -183,7 +193,7 @@ def contact(p: Truth, s: Array) -> Contact:
 
     Fx = -F_nR * nx + f_t * ny - face_scale * ux
     Fy = -F_nR * ny - f_t * nx - face_scale * uy
-    Fz = F_zR + F_zZ
+    Fz = F_zR + F_zZ + p.contact_angle_tan * F_nR
     return Contact(
         force=jnp.stack([Fx, Fy, Fz]),
         F_n=-(Fx * nx + Fy * ny),
@@ -227,14 +237,29 @@ def derivative(p: Truth, t: Array, s: Array) -> Array:
     comp = p.amb_unbalance_compensation * m * unbalance
     amb = gain * jnp.stack(
         [
-            -p.amb_stiffness * s[X] - p.amb_damping * s[VX] - comp * cos_t,
-            -p.amb_stiffness * s[Y] - p.amb_damping * s[VY] - comp * sin_t,
+            -p.amb_stiffness * s[X] - p.amb_damping * s[VX] - comp * cos_t - p.radial_load_x,
+            -p.amb_stiffness * s[Y] - p.amb_damping * s[VY] - comp * sin_t - p.radial_load_y,
             -p.amb_stiffness * s[Z] - p.amb_damping * s[VZ] + m * p.gravity + p.axial_load,
         ]
     )
-    external = jnp.stack([0.0, 0.0, -m * p.gravity - p.axial_load + p.axial_thrust * cos_t])
+    external = jnp.stack([0.0, 0.0, -m * p.gravity - p.axial_load + p.axial_thrust * cos_t]) + hidden_force(p, s)
     accel = (c.force + amb + external) / m + jnp.stack([ub_x, ub_y, 0.0])
     return jnp.concatenate([s[VX : VZ + 1], accel, jnp.stack([omega, omega_dot, omega_ring_dot])])
+
+
+def hidden_force(p: Truth, s: Array) -> Array:
+    """(3,) N on the rotor from the effects the paper's model lacks (side load, magnetic negative
+    stiffness, drag, cross-coupled stiffness, twice-per-revolution force); zero on the reference rig."""
+    x, y, z, vx, vy, vz, theta = (s[i] for i in range(THETA + 1))
+    k_r, k_z, q = p.magnetic_stiffness_radial, p.magnetic_stiffness_axial, p.cross_coupled_stiffness
+    c_r, c_z, a2 = p.rotor_drag_radial, p.rotor_drag_axial, p.twice_per_rev_force
+    return jnp.stack(
+        [
+            p.radial_load_x + k_r * x - q * y - c_r * vx + a2 * jnp.cos(2.0 * theta),
+            p.radial_load_y + k_r * y + q * x - c_r * vy + a2 * jnp.sin(2.0 * theta),
+            k_z * z - c_z * vz,
+        ]
+    )
 
 
 def rk4_step(p: Truth, t: Array, s: Array, h: float) -> Array:
@@ -249,13 +274,19 @@ def rk4_step(p: Truth, t: Array, s: Array, h: float) -> Array:
 def levitated_state(p: Truth, theta0: float, speed: float) -> np.ndarray:
     """Periodic state of the levitated rotor at theta = theta0 (rad) and spin speed (rad/s).
 
-    Residual unbalance orbit of the linear AMB loop, z = 0 (gravity and load
-    compensated), auxiliary-bearing ring at rest.
+    Residual unbalance orbit of the linear AMB loop (with the hidden effects' stiffness, drag and
+    twice-per-revolution force), z = 0 (gravity and loads compensated), auxiliary-bearing ring at rest.
     """
     m = float(p.mass)
     force = (1.0 - float(p.amb_unbalance_compensation)) * m * float(p.eccentricity) * speed**2
-    # m x'' + c x' + k x = force e^{i theta}  ->  x = Re(A e^{i theta}).
-    A = force / (float(p.amb_stiffness) - m * speed**2 + 1j * speed * float(p.amb_damping))
-    position = A * np.exp(1j * theta0)
-    velocity = 1j * speed * position
+    # In complex X = x + i y: m X'' + c X' + (k - k_m - i q) X = F e^{i theta} + A e^{2 i theta} (the
+    # static side load is cancelled by the AMB); X = sum of the two harmonic responses.
+    stiffness = float(p.amb_stiffness) - float(p.magnetic_stiffness_radial) - 1j * float(p.cross_coupled_stiffness)
+    damping = float(p.amb_damping) + float(p.rotor_drag_radial)
+    orbit = [
+        (n, f / (stiffness - m * (n * speed) ** 2 + 1j * n * speed * damping) * np.exp(1j * n * theta0))
+        for n, f in ((1, force), (2, float(p.twice_per_rev_force)))
+    ]
+    position = sum(a for _, a in orbit)
+    velocity = sum(1j * n * speed * a for n, a in orbit)
     return np.array([position.real, position.imag, 0.0, velocity.real, velocity.imag, 0.0, theta0, speed, 0.0])
