@@ -44,8 +44,12 @@ from touchdown_ros.workflows.optimise import (
 )
 from touchdown_ros.workflows.training_data import TrainingData, note_ungated, record_mesh, training_batch
 
-#: Tolerance to which stage 1 fits each candidate contact law before the best one is refined.
+#: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
+#: BIC behind the best screened candidate within which a candidate is refined too before one is
+#: chosen: a screening step stops once a step gains less than SCREEN_TOLERANCE of the loss, which
+#: on a few thousand samples is a BIC of about one per step, so close screened scores do not decide.
+FINALIST_MARGIN = 20.0
 
 
 @dataclass(frozen=True)
@@ -211,24 +215,42 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             "cannot be fitted; set training.axial_support: auto or rigid"
         )
     screened.sort(key=lambda c: c.bic)
-    best = screened[0]
-    candidates = tuple(
-        {"law": c.name, "loss": c.convergence.final_loss, "bic_above_best": round(c.bic - best.bic, 3),
-         "steps": c.convergence.steps}
-        for c in screened
-    )
-    law, coordinates, x = best.law, best.coordinates, best.x
-    guess, objective = problem(law, batch, coordinates)[:2]
+    finalists = [c for c in screened if c.bic - screened[0].bic < FINALIST_MARGIN]
     if len(screened) > 1:
         print(
             "contact laws by BIC (above the best): "
-            + ", ".join(f"{c['law']} {c['bic_above_best']:.4g}" for c in candidates)
+            + ", ".join(f"{c.name} {c.bic - screened[0].bic:.4g}" for c in screened)
+            + "; refined: " + ", ".join(c.name for c in finalists),
+            file=stream,
+        )
+    refined = []
+    for c in finalists:
+        objective = problem(c.law, batch, c.coordinates)[1]
+        x, convergence = minimise(
+            objective, c.x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
+            describe,
+        )
+        require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
+        score = bic(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
+        refined.append(c._replace(bic=score, x=x, convergence=convergence))
+    refined.sort(key=lambda c: c.bic)
+    best = refined[0]
+    if len(refined) > 1:
+        print(
+            "refined by BIC (above the best): " + ", ".join(f"{c.name} {c.bic - best.bic:.4g}" for c in refined)
             + f"; chosen: {best.name}",
             file=stream,
         )
-    label = f"calibrate {best.name}, refined"
-    x, convergence = minimise(objective, x, settings.calibration_steps, settings.tolerance, label, stream, describe)
-    require_convergence(convergence, f"stage 1 ({best.name})", data.paths, "-p training.calibration_steps:=N")
+    finals = {c.name: c for c in refined}
+    candidates = tuple(
+        {"law": c.name, "loss": c.convergence.final_loss, "bic_above_best": round(c.bic - screened[0].bic, 3),
+         "steps": c.convergence.steps,
+         **({"refined_loss": finals[c.name].convergence.final_loss,
+             "refined_bic_above_best": round(finals[c.name].bic - best.bic, 3)} if c.name in finals else {})}
+        for c in screened
+    )
+    law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
+    guess, objective = problem(law, batch, coordinates)[:2]
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
