@@ -180,7 +180,7 @@ def run_case(case: Case, out: Path) -> dict:
         force_after = force_rmse(rig, with_effect, bags)
     (out / "log.txt").write_text(log.getvalue())
     errors, trained_errors = _relative_errors(fitted, truth), _relative_errors(trained, truth)
-    right = verdict["best"] == case.effect if case.effect else not verdict["explained"]
+    right = verdict["explained"] and verdict["best"] == case.effect if case.effect else not verdict["explained"]
     force_ratio = force_after / force_before
     return {
         "case": case.name,
