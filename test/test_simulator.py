@@ -331,6 +331,73 @@ def test_features_of_a_synthetic_record():
     assert f.whirl_direction == 1.0 and f.radial_contact_share == 1.0
 
 
+# --- Hidden effects (the workbench's truth) --------------------------------------------------
+
+
+HIDDEN = {
+    "radial_load_x": 300.0,
+    "radial_load_y": -200.0,
+    "magnetic_stiffness_radial": 1.0e6,
+    "magnetic_stiffness_axial": 2.0e6,
+    "rotor_drag_radial": 3000.0,
+    "rotor_drag_axial": 4000.0,
+    "cross_coupled_stiffness": 5.0e5,
+    "twice_per_rev_force": 300.0,
+}
+
+
+def test_hidden_forces_by_hand():
+    """physics.hidden_force written out: side load + k r outward + q (-y, x) - c v + A (cos 2t, sin 2t)."""
+    from touchdown_ros.sim.physics import hidden_force
+
+    truth = _truth()._replace(**HIDDEN)
+    x, y, z, vx, vy, vz, theta = 1e-4, -2e-4, -3e-4, 0.05, -0.02, 0.1, 0.7
+    s = np.array([x, y, z, vx, vy, vz, theta, 500.0, 0.0])
+    expected = [
+        300.0 + 1e6 * x - 5e5 * y - 3000.0 * vx + 300.0 * np.cos(2 * theta),
+        -200.0 + 1e6 * y + 5e5 * x - 3000.0 * vy + 300.0 * np.sin(2 * theta),
+        2e6 * z - 4000.0 * vz,
+    ]
+    np.testing.assert_allclose(np.asarray(hidden_force(truth, s)), expected, rtol=1e-12)
+    assert np.all(np.asarray(hidden_force(_truth(), s)) == 0.0)  # the reference rig has none
+
+
+def test_contact_angle_pushes_up_by_tan_beta_times_the_bore_force():
+    from touchdown_ros.sim.physics import contact
+
+    truth = _truth()
+    s = np.array([truth.radial_clearance + 2e-6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # bore only
+    plain, tilted = contact(truth, s), contact(truth._replace(contact_angle_tan=0.2), s)
+    assert float(plain.F_n) > 100.0 and float(plain.F_z) == 0.0
+    assert float(tilted.F_z) == pytest.approx(0.2 * float(plain.F_n), rel=1e-12)
+
+
+def test_levitated_orbit_is_periodic_with_the_hidden_effects():
+    """levitated_state solves the AMB loop with the effects' stiffness, drag and 2x force: the state a
+    small time later is the orbit rotated, and its acceleration is that of the two harmonics."""
+    from touchdown_ros.sim.physics import derivative, levitated_state
+
+    truth = _truth()._replace(drop_time=1.0, **HIDDEN)
+    speed = 500.0
+    s = levitated_state(truth, 0.3, speed)
+    ds = np.asarray(derivative(truth, 0.0, s))
+    # x'' of the harmonic orbit: sum over n of -(n omega)^2 times each harmonic; from the 1x and 2x parts
+    one = levitated_state(truth._replace(twice_per_rev_force=0.0), 0.3, speed)
+    two = s - one
+    expected = -(speed**2) * one[:2] - (2 * speed) ** 2 * two[:2]
+    np.testing.assert_allclose(ds[3:5], expected, rtol=1e-6, atol=1e-9)
+    assert abs(two[0]) > 1e-9  # the 2x force moves the orbit
+    assert ds[5] == pytest.approx(0.0, abs=1e-9)  # z stays at 0 (loads compensated)
+
+
+def _truth():
+    from touchdown_ros.sim.params import simulator_parameters, truth_constants
+
+    rng = np.random.default_rng(0)
+    params = simulator_parameters(load_config(overrides={"simulator.variation": 0.0}))
+    return truth_constants(CONFIG, params, "ceramic", False, False, 0.0, rng)
+
+
 # --- Parameter validation ---------------------------------------------------------------------
 
 
