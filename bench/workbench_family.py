@@ -43,6 +43,7 @@ from touchdown_ros.sim.params import simulator_parameters, truth_constants
 from touchdown_ros.sim.physics import Truth
 
 DROPS = 2
+MAX_ROUNDS = 3
 SPEED = 5000.0 * 2.0 * math.pi / 60.0  # rad/s, the family's drop speed
 
 
@@ -150,16 +151,32 @@ def _relative_errors(fitted: Mapping[str, float], truth: Mapping[str, float]) ->
 
 
 def run_case(case: Case, out: Path) -> dict:
-    """Stage 1 on the case's drops, diagnose, stage 1 with the true effect switched on; the figures of its row."""
+    """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
+    true effect switched on; the figures of its row."""
     started = time.perf_counter()
     shutil.rmtree(out, ignore_errors=True)
     bags, rig, truths = simulate(case, out)
     log = io.StringIO()
-    calibrated = out / "calibrated.yaml"
-    _run(["train", *map(str, bags), "-o", str(calibrated), "--steps", "0", "--config", str(rig)], log)
-    diagnosis = out / "diagnosis"
-    _run(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(diagnosis)], log)
-    verdict = json.loads((diagnosis / "diagnosis.json").read_text())["models"][0]["verdict"]
+
+    def train(path: Path, effects: list[str]) -> Path:
+        active = ["-p", f"effects.active:=[{','.join(effects)}]"] if effects else []
+        _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *active], log)
+        return path
+
+    # The workbench's loop as a user runs it: diagnose; when it names an effect, add it and
+    # diagnose again, until it names the hidden one or says unexplained (at most MAX_ROUNDS).
+    added: list[str] = []
+    verdicts = []
+    for round_ in range(1, MAX_ROUNDS + 1):
+        calibrated = train(out / f"calibrated_{round_}.yaml", added)
+        diagnosis = out / f"diagnosis_{round_}"
+        _run(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out",
+              str(diagnosis)], log)
+        verdict = json.loads((diagnosis / "diagnosis.json").read_text())["models"][0]["verdict"]
+        verdicts.append(verdict)
+        if not verdict["explained"] or verdict["best"] == case.effect or round_ == MAX_ROUNDS:
+            break
+        added.append(verdict["best"])
     truth = {k: float(np.mean([case.truth(t)[k] for t in truths])) for k in case.truth(truths[0])}
     rows = {c["candidate"]: c for c in verdict["candidates"]}
     named = rows.get(verdict["best"]) if verdict["explained"] else None
@@ -173,9 +190,7 @@ def run_case(case: Case, out: Path) -> dict:
     force_before = force_rmse(rig, calibrated, bags)
     trained, force_after = {}, force_before
     if case.effect:
-        with_effect = out / "with_effect.yaml"
-        _run(["train", *map(str, bags), "-o", str(with_effect), "--steps", "0", "--config", str(rig),
-              "-p", f"effects.active:=[{case.effect}]"], log)
+        with_effect = train(out / "with_effect.yaml", [*added, case.effect])
         trained = fitted_effect(with_effect, case.effect)
         force_after = force_rmse(rig, with_effect, bags)
     (out / "log.txt").write_text(log.getvalue())
@@ -187,6 +202,8 @@ def run_case(case: Case, out: Path) -> dict:
         "rig": case.rig,
         "effect": case.effect,
         "verdict": verdict["text"],
+        "added_first": added,
+        "earlier_verdicts": [v["text"] for v in verdicts[:-1]],
         "best": verdict["best"],
         "explained": verdict["explained"],
         "collinear": verdict["collinear"],
@@ -233,12 +250,18 @@ def table(rows: list[dict]) -> str:
         marks = " / ".join("yes" if r[k] else "NO" for k in ("right", "sized", "trained_sized", "halved"))
         margin = r["margin_to_second"]
         lines.append(
-            f"| {r['case']} | {r['rig']} | {r['verdict'].split(';')[0].split(' (')[0]} | "
+            f"| {r['case']} | {r['rig']} | {_added(r)}{r['verdict'].split(';')[0].split(' (')[0]} | "
             f"{'-' if margin is None else f'{margin:.1f}'} ({r['second']}) | "
             f"{_fits(r['fitted'], r['relative_error'])} | "
             f"{_fits(r['trained'], r['trained_relative_error'])} | {_values(r['truth'])} | {ks} | {force} | {marks} |"
         )
     return "\n".join(lines)
+
+
+def _added(row: dict) -> str:
+    """The effects named and added in earlier rounds, if any."""
+    added = row.get("added_first", [])
+    return f"after adding {', '.join(added)}: " if added else ""
 
 
 def _fits(values: Mapping[str, float], errors: Mapping[str, float]) -> str:
