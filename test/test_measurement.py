@@ -185,6 +185,25 @@ def test_training_loss_is_least_at_the_true_sensor_error():
         assert jax.grad(value, argnums=1)(GAIN, 0.0) < 0.0 < jax.grad(value, argnums=1)(GAIN, 2 * OFFSET), kind
 
 
+def test_the_workbench_k_step_prediction_is_in_the_sensors_units():
+    """The held-out k-step error that judges a candidate compares h(xi) k samples ahead with the
+    measured: with the true sensor effects it is centred on the sensor noise, not on the offset
+    (it compared the position, so a right sensor candidate raised the error by its own size)."""
+    from test_streaming import CONFIG
+
+    from touchdown_ros.core.selection import sample_measures
+
+    values = {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_z": {"offset": OFFSET}}
+    config = dataclasses.replace(CONFIG, effects=library_effects(SENSOR["effects.active"], values))
+    model, noise, h = config.model(), config.noise, config.sample_period
+    _, measured = _sensed_model_drop(config)
+    onset = int(round(0.02 / h))
+    batch = make_batch([measured[onset : onset + 400]], np.asarray(noise.initial), gates=[(1.0, 1.0)])
+    error = np.asarray(sample_measures(model, noise, h, batch, 20).k_step_error)[0, :, 2]
+    error = error[np.isfinite(error)]
+    assert error.size > 300 and abs(np.mean(error)) < 0.2 * OFFSET, np.mean(error)
+
+
 def test_live_chunk_filter_equals_the_offline_filter_with_a_measurement_effect():
     from test_streaming import CHUNKS, CONFIG, assert_same, offline
 

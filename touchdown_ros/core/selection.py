@@ -30,6 +30,7 @@ from touchdown_ros.core.calibration import filtered_states
 from touchdown_ros.core.diagnostics.breakdown import PHASES, contact_phase, deformations
 from touchdown_ros.core.diagnostics.prediction import k_step_predictions
 from touchdown_ros.core.diagnostics.regressors import effect_regressors
+from touchdown_ros.core.dynamics import measurement
 from touchdown_ros.core.effects import Effect, Effects
 from touchdown_ros.core.training import Batch, sample_errors
 from touchdown_ros.core.types import FilterNoise, Model, Rig
@@ -84,7 +85,7 @@ class SampleMeasures(NamedTuple):
     """Per-sample measures of one model on a batch."""
 
     nll: Array  # (B, L) -2 ln L of the innovation (without constants), 0 where no sample
-    k_step_error: Array  # (B, L, 3) m, k-step predicted minus measured position (NaN where none)
+    k_step_error: Array  # (B, L, 3) m, k-step predicted measurement h(xi) minus the measured (NaN where none)
     states: Array  # (B, L, 7) filtered states
 
 
@@ -94,7 +95,7 @@ def sample_measures(model: Model, noise: FilterNoise, h: float, batch: Batch, k:
 
     def ahead(record_states: Array, gates: Array) -> Array:
         gated = model._replace(effects=model.effects.with_gates(gates))
-        return k_step_predictions(gated, record_states, h, k)[:, :3]
+        return jax.vmap(lambda xi: measurement(gated, xi))(k_step_predictions(gated, record_states, h, k))
 
     predicted = jax.vmap(ahead)(states, batch.gates)
     return SampleMeasures(sample_errors(model, noise, h, batch, "nll"), predicted - batch.etas, states)
