@@ -85,9 +85,11 @@ def test_the_best_candidate_must_beat_the_baseline_with_its_parameters_counted_a
     assert chosen["margin_to_second"] > 90
     alone = sel.verdict([marginal])
     assert not alone["explained"] and "unexplained" in alone["text"]
-    # better by the criterion but the held-out k-step error hardly falls: unexplained
-    overfit = sel.judge("overfit", (*_errors(2.9, 8.8e-6), 9), base)
+    # better by the criterion but the held-out k-step error rises: unexplained; a small fall is enough
+    overfit = sel.judge("overfit", (*_errors(2.9, 9.1e-6), 9), base)
     assert not sel.verdict([overfit])["explained"]
+    small = sel.judge("small", (*_errors(2.9, 8.8e-6), 9), base)
+    assert sel.verdict([small])["explained"]
     # better overall but worse in one contact phase: a compromise, not the missing effect
     fitted, held = _errors(2.9, 5e-6)
     held["free flight"] = sel.Errors(10, 2.9, np.full(3, 12e-6))

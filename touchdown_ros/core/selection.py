@@ -143,8 +143,11 @@ def fall(before: float, after: float) -> float:
     return float(1.0 - after / before) if before else float("nan")
 
 
-#: The best candidate must lower the held-out k-step error (norm over the axes) by at least this share.
-MIN_K_STEP_FALL = 0.1
+#: The best candidate must lower the held-out k-step error (norm over the axes) by more than this share.
+#: Zero: how much an effect lowers it depends on the rig's other model errors (a 1e6 N/m magnetic
+#: stiffness on a family rig lowers it 3 %, the rest being the contact law's), not on whether it is
+#: real; the criterion and the held-out NLL carry the evidence, the phase rule below the physics.
+MIN_K_STEP_FALL = 0.0
 #: ... and must not raise it by more than this share in any contact phase: a missing effect, once
 #: added, predicts better where it acts and no worse elsewhere; a candidate that trades one phase
 #: for another compensates something else (e.g. a contact law's error) with a compromise value.
@@ -222,7 +225,7 @@ def verdict(
     worst_phase = min(best.phase_k_step_fall, key=best.phase_k_step_fall.get, default=None)
     worst_fall = best.phase_k_step_fall[worst_phase] if worst_phase else 0.0
     explained = (
-        best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall >= min_fall and worst_fall >= -max_rise
+        best.criterion < 0.0 and best.nll_fall > 0.0 and best.k_step_fall > min_fall and worst_fall >= -max_rise
     )
     if explained:
         ahead = "" if collinear else f", the next {margin_to_second:.1f} behind"
@@ -235,8 +238,8 @@ def verdict(
             f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "
             "(it trades one phase for another)"
             if worst_fall < -max_rise
-            else f"lowers the held-out k-step error by {100 * best.k_step_fall:.0f} % (< {100 * min_fall:.0f} %, "
-            f"or the NLL or the criterion does not fall)"
+            else f"changes the held-out k-step error by {-100 * best.k_step_fall:+.0f} % (it must fall by more than "
+            f"{100 * min_fall:.0f} %), or the NLL or the criterion does not fall"
         )
         text = (
             f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {why}; "
