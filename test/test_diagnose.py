@@ -229,6 +229,49 @@ def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_
     assert "missing effect: axial_load" in text
 
 
+# Hidden library effects on family rigs (bench/workbench_family.py measures these and more; its table
+# is in docs/workbench.md): the simulator keys, the library effect, the identifiable size of the truth
+# from the drops' truth constants and the fitted parameters, and the held-out k-step ratio required on
+# the axes where the effect acts (None: only named and sized).
+HIDDEN_LIBRARY_EFFECTS = {
+    "sensor offset": (
+        "soft_bearing", {"sensor_offset_x": 3.0e-5}, "sensor_offset_x",
+        lambda truth: 3.0e-5, lambda p: p["offset"], 0.1, [0], 0.5,
+    ),
+    "contact angle": (
+        # tan_beta and the effect's own k_radial act only as their product (N/m of axial force per
+        # radial deformation): the product is what the drops tell
+        "linear_spring", {"contact_angle_tan": 0.2}, "contact_angle_coupling",
+        lambda truth: 0.2 * truth.radial_stiffness, lambda p: p["tan_beta"] * p["k_radial"], 0.1, [2], 0.5,
+    ),
+    "cross-coupled stiffness": (
+        "slippery", {"cross_coupled_stiffness": 5.0e5}, "cross_coupled_stiffness",
+        lambda truth: 5.0e5, lambda p: p["q"], 0.25, [0, 1], None,
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HIDDEN_LIBRARY_EFFECTS))
+def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_error(case, tmp_path):
+    rig_name, simulator, effect, true_size, fitted_size, tolerance, axes, k_step_ratio = HIDDEN_LIBRARY_EFFECTS[case]
+    bags, rig, truths = _family(tmp_path / "bags", rig_name, **simulator)
+    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
+    out = tmp_path / "diagnosis"
+    assert (
+        main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    )
+    verdict = _diagnosis(out)["models"][0]["verdict"]
+    assert verdict["explained"] and verdict["best"] == effect, verdict["text"]
+    first = verdict["candidates"][0]
+    assert first["candidate"] == effect and first["criterion"] < 0.0 and first["held_out_nll_fall"] > 0.0, first
+    truth = float(np.mean([true_size(t) for t in truths]))
+    fitted = fitted_size({k: v["value"] for k, v in first["parameters"].items()})
+    assert abs(fitted - truth) < tolerance * abs(truth), (fitted, truth)
+    before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_m"])[axes]
+    after = np.asarray(first["held_out_k_step_rmse_m"])[axes]
+    assert np.linalg.norm(after) < (k_step_ratio or 1.0) * np.linalg.norm(before), (before, after)
+
+
 @pytest.fixture(scope="module")
 def family_thrust_bags(tmp_path_factory):
     """The lossy_contact rig of the family (Hunt-Crossley damping x3) with a hidden 500 N
