@@ -187,6 +187,10 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)
     sigma = config.noise_rms
     np.testing.assert_allclose(calibration["sensor_noise_m"], sigma, rtol=0.15)  # R from the levitated samples
+    # the offline estimate's Q: the fitted one times the factor of the lowest leave-one-out smoothing error
+    smoothing, scale = document["training"]["smoothing_noise"], document["filter"]["smoothing_noise_scale"]
+    assert 0.02 <= scale <= 3.0 and smoothing["scale"] == pytest.approx(scale, rel=1e-3)
+    assert smoothing["leave_one_out_error_um"]["chosen"] <= smoothing["leave_one_out_error_um"]["fitted_q"]
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth

@@ -98,6 +98,26 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
             load_coefficients(rigid, CONFIG)
 
 
+def test_file_carries_the_smoothing_noise_scale_and_the_offline_estimate_uses_it(tmp_path):
+    """The offline estimate filters and smooths with Q times the file's factor; the live node's Q
+    (`noise`) stays the fitted one; a file of before has none (1); a bad one is refused."""
+    calibrated = CONFIG.calibrated(CONFIG.nominal, CONFIG.law, CONFIG.kernel, CONFIG.noise, 0.37)
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
+    loaded = load_coefficients(path, CONFIG).config(CONFIG)
+    assert loaded.smoothing_noise_scale == 0.37
+    np.testing.assert_array_equal(loaded.noise.process, CONFIG.noise.process)
+    np.testing.assert_array_equal(loaded.offline_noise().process, np.asarray(CONFIG.noise.process) * 0.37)
+    document = yaml.safe_load(path.read_text())
+    del document["filter"]["smoothing_noise_scale"]
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert load_coefficients(path, CONFIG).config(CONFIG).smoothing_noise_scale == 1.0
+    for bad in (0.0, -2.0, float("nan"), "x", True):
+        document["filter"]["smoothing_noise_scale"] = bad
+        path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=r"filter\.smoothing_noise_scale must be a number > 0"):
+            load_coefficients(path, CONFIG)
+
+
 def test_other_rig_is_refused_naming_the_difference(tmp_path):
     path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), CONFIG, TrainingRecord())
     other = load_config(reference_rig_path(), overrides={"rig.mass": 250.0, "sensor.sample_period": 2.0e-4})

@@ -124,6 +124,8 @@ def save_coefficients(
             "process_noise": np.asarray(config.noise.process, dtype=float).tolist(),
             "measurement_noise": np.sqrt(np.asarray(config.noise.measurement, dtype=float)).tolist(),
             "initial_covariance": np.asarray(config.noise.initial, dtype=float).tolist(),
+            # factor on process_noise for the offline (smoothed) estimate; the live node filters with it as it is
+            "smoothing_noise_scale": float(config.smoothing_noise_scale),
         },
         "coefficients": {
             "units": "dimensionless, relative to each nominal value: p(s) = f0 * (1 + Q(s, T) alpha)",
@@ -316,7 +318,10 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         measurement=_array(path, document, "filter.measurement_noise", (3,), positive=True) ** 2,
         initial=_array(path, document, "filter.initial_covariance", (7,)),
     )
-    return config.calibrated(Nominal(*values), law, kernel, noise)
+    scale = document["filter"].get("smoothing_noise_scale", 1.0)  # files before it: Q as it is
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) or scale <= 0:
+        raise CoefficientFileError(f"{path}: filter.smoothing_noise_scale must be a number > 0, got {scale!r}")
+    return config.calibrated(Nominal(*values), law, kernel, noise, float(scale))
 
 
 def _load_effects(path: Path, table: Any) -> Effects:

@@ -46,6 +46,9 @@ LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
 #: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding.
 SUPPORT_CHOICES = ("auto", "rigid", "yielding")
+#: training.smoothing_noise: the offline estimate's Q: cross_validation (a factor on the fitted Q, chosen
+#: by the smoother's leave-one-out error) or likelihood (the fitted Q as it is, as the live filter).
+SMOOTHING_NOISE_CHOICES = ("cross_validation", "likelihood")
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,7 @@ class TrainingSettings:
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the BIC falls) or not
+    smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,7 @@ class Config:
     regularisation: float  # lambda
     topics: Topics
     training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
+    smoothing_noise_scale: float = 1.0  # factor on Q of the offline estimate (a coefficient file's, `offline_noise`)
     law: ContactLaw = field(default_factory=ContactLaw)  # contact.law / contact.exponent
     training: TrainingSettings = field(default_factory=TrainingSettings)
     simulator: Mapping[str, Any] = field(default_factory=dict)
@@ -155,6 +160,12 @@ class Config:
     def training_noise(self) -> FilterNoise:
         """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
         return self.noise._replace(process=np.asarray(self.noise.process) * self.training_noise_scale)
+
+    def offline_noise(self) -> FilterNoise:
+        """The filter noise of the offline (smoothed) estimate: Q scaled by the factor the training chose
+        for smoothing (`core.calibration.smoothing_scale`; 1 without a coefficient file). The live
+        node filters with `noise` as it is."""
+        return self.noise._replace(process=np.asarray(self.noise.process) * self.smoothing_noise_scale)
 
     def held_out_block_samples(self) -> int:
         """training.held_out_block (s) as a whole number of samples, at least one."""
@@ -188,9 +199,13 @@ class Config:
         noise are what the file itself carries (calibrated), not the YAML's guesses."""
         return {"rig": dict(self.rig._asdict()), "sample_period": self.sample_period}
 
-    def calibrated(self, nominal: Nominal, law: ContactLaw, kernel: Kernel, noise: FilterNoise) -> "Config":
+    def calibrated(
+        self, nominal: Nominal, law: ContactLaw, kernel: Kernel, noise: FilterNoise, smoothing_noise_scale: float = 1.0
+    ) -> "Config":
         """This rig with identified contact constants, law, kernel and filter noise (a coefficient file's)."""
-        return replace(self, nominal=nominal, law=law, kernel=kernel, noise=noise)
+        return replace(
+            self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale
+        )
 
 
 def reference_rig_path() -> Path:
@@ -349,6 +364,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
         patience=read.integer("training.patience", d.patience, minimum=1),
         axial_support=read.choice("training.axial_support", d.axial_support, SUPPORT_CHOICES),
+        smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
     )
 
 

@@ -73,8 +73,8 @@ class BagEstimate:
 
 def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Estimator:
     """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
-    effects unless others, e.g. a coefficient file's, are given)."""
-    return make_estimator(config.model(coeffs, effects), config.noise, config.sample_period)
+    effects unless others, e.g. a coefficient file's, are given), with the offline filter noise."""
+    return make_estimator(config.model(coeffs, effects), config.offline_noise(), config.sample_period)
 
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:

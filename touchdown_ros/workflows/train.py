@@ -11,6 +11,7 @@ from typing import Callable, NamedTuple, Sequence
 import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from scipy.optimize import minimize_scalar
 
 from touchdown_ros.workflows.calibrate import Calibration, calibrate
 from touchdown_ros.core.calibration import (
@@ -21,6 +22,7 @@ from touchdown_ros.core.calibration import (
     kernel_from_data,
 )
 from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.smoothing import leave_one_out_error
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
@@ -174,6 +176,51 @@ class TrainOutcome:
     seconds: float
 
 
+#: The factors on Q the smoothing search may choose (ln-scale bounds) and its tolerance on ln s.
+SMOOTHING_SCALE_RANGE = (0.02, 3.0)
+SMOOTHING_SCALE_TOLERANCE = 0.05
+
+
+class SmoothingScale(NamedTuple):
+    """The factor on the fitted Q for the offline estimate and what chose it."""
+
+    scale: float
+    error_at_one: float | None  # m, leave-one-out smoothing error with the fitted Q
+    error: float | None  # m, ... with Q times scale
+    how: str
+
+    def as_dict(self) -> dict:
+        um = (lambda v: None if v is None else round(v * 1e6, 5))
+        return {"scale": round(self.scale, 4), "how": self.how, "leave_one_out_error_um": {
+            "fitted_q": um(self.error_at_one), "chosen": um(self.error)}}
+
+
+def choose_smoothing_scale(model, noise, h: float, batch: Batch, stream=sys.stderr) -> SmoothingScale:
+    """The factor s on Q (within SMOOTHING_SCALE_RANGE) of the lowest leave-one-out smoothing error on
+    the training records (`core.smoothing`), by a bounded scalar search on ln s, with progress."""
+    started = time.perf_counter()
+
+    def error(log_scale: float) -> float:
+        scaled = noise._replace(process=np.asarray(noise.process) * np.exp(log_scale))
+        value = float(leave_one_out_error(model, scaled, h, batch))
+        print(
+            f"[smoothing noise] Q x{np.exp(log_scale):.3g}: leave-one-out error {value * 1e6:.4f} um  "
+            f"{time.perf_counter() - started:.1f} s elapsed",
+            file=stream,
+            flush=True,
+        )
+        return value
+
+    at_one = error(0.0)
+    low, high = (float(np.log(v)) for v in SMOOTHING_SCALE_RANGE)
+    found = minimize_scalar(error, bounds=(low, high), method="bounded", options={"xatol": SMOOTHING_SCALE_TOLERANCE})
+    scale, best = (float(np.exp(found.x)), float(found.fun)) if found.fun < at_one else (1.0, at_one)
+    how = f"cross-validation: the lowest leave-one-out smoothing error of Q x{SMOOTHING_SCALE_RANGE[0]:g}..x" \
+          f"{SMOOTHING_SCALE_RANGE[1]:g} on the training bags"
+    print(f"[smoothing noise] the offline estimate uses Q x{scale:.3g} ({how})", file=stream, flush=True)
+    return SmoothingScale(scale, at_one, best, how)
+
+
 def train(
     config: Config,
     bags: Sequence[str | Path],
@@ -238,9 +285,13 @@ def train(
             f"--steps N (then --resume continues from {checkpoint_path(out)})",
         )
     final = calibrated.model(result.coeffs, result.effects)
-    _, nis = filtered_states(
-        final, calibrated.noise, config.sample_period, training_batch(calibrated, data, result.effects)
-    )
+    batch = training_batch(calibrated, data, result.effects)
+    _, nis = filtered_states(final, calibrated.noise, config.sample_period, batch)
+    if config.training.smoothing_noise == "cross_validation":
+        smoothing = choose_smoothing_scale(final, calibrated.noise, config.sample_period, batch, stream)
+        calibrated = replace(calibrated, smoothing_noise_scale=smoothing.scale)
+    else:
+        smoothing = SmoothingScale(1.0, None, None, "likelihood: the fitted Q as it is")
     mean_nis = tuple(float(np.nanmean(row)) for row in np.asarray(nis)[: len(data.records)])
     seconds = time.perf_counter() - start
     save_coefficients(
@@ -256,6 +307,7 @@ def train(
             pkbkr=result.convergence.as_dict() if result.convergence else {},
             kernel_notes=notes,
             mean_nis={str(p): round(v, 3) for p, v in zip(data.paths, mean_nis)},
+            smoothing_noise=smoothing.as_dict(),
         ),
         result.effects,
     )

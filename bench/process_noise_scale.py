@@ -1,0 +1,87 @@
+"""What the process noise Q buys and costs: the family's held-out drops estimated with the trained
+Q scaled by a factor, against a displacement-only choice of that factor.
+
+`touchdown train` fits Q by the innovation likelihood (with f0, stage 1). This bench takes the
+coefficient files `bench/calibration_family.py --out DIR` wrote, scales their Q by each factor
+and estimates the held-out bags (smoothed, stage 1+2) as that bench does: peak force errors and
+force band coverage against the truth, and two criteria a user can compute without the truth on
+the training bags: the innovation negative log-likelihood (what training minimises, per sample)
+and the leave-one-out cross-validated smoothing error, sqrt(mean((y - x_smoothed)^2 / (1 -
+P_smoothed / R)^2)) (the residual of each sample from the smoother's fit to the others, the hat
+diagonal of a linear smoother being P_smoothed R^-1 per axis).
+
+    .venv/bin/python bench/process_noise_scale.py --results DIR [--variants a,b] [--scales 1,0.3,0.1]
+
+Prints a markdown table: rig, Q factor, worst held-out peak F_z / F_r error (%), force RMSE over
+the peak (%), the 95 % force band's coverage (%), NLL per sample and LOO-CV (um) on the training bags.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from calibration_family import bag_figures
+from touchdown_ros.io.coefficients import load_coefficients
+from touchdown_ros.sim.family import VARIANTS, variant, variant_config
+from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+
+
+def criteria(estimates: list, R: np.ndarray) -> tuple[float, float]:
+    """(innovation NLL per sample, LOO-CV smoothing error in m) over the estimates of some bags,
+    R (3,) the measurement noise variance per axis, m^2."""
+    nll, count, loo = 0.0, 0, []
+    for estimate in estimates:
+        nis, S = np.asarray(estimate.nis), np.asarray(estimate.innovation_cov)
+        used = np.isfinite(nis)
+        nll += float(np.sum(nis[used] + np.log(np.linalg.det(S[used]))))
+        count += int(np.count_nonzero(used))
+        residual = np.asarray(estimate.measured) - np.asarray(estimate.smoothed.state)[:, :3]
+        P = np.diagonal(np.asarray(estimate.smoothed.state_cov)[:, :3, :3], axis1=1, axis2=2)
+        loo.append((residual / (1.0 - P / R))[np.isfinite(residual).all(axis=1)])
+    return nll / max(count, 1), float(np.sqrt(np.mean(np.concatenate(loo) ** 2)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, required=True, help="the --out directory of calibration_family.py")
+    parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS))
+    parser.add_argument("--scales", default="1,0.3,0.1", help="factors on the trained Q")
+    parser.add_argument("--train", type=int, default=3, help="bags trained on per rig (the first ones)")
+    parser.add_argument("--loss", default="nll")
+    args = parser.parse_args(argv)
+    print("| rig | Q factor | peak F_z err % | peak F_r err % | force RMSE / peak % | force band covers % "
+          "| training bags: NLL per sample | LOO-CV, um |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for name in args.variants.split(","):
+        config = variant_config(variant(name))
+        folder = args.results / name
+        loaded = load_coefficients(folder / f"coefficients_{args.loss}.yaml", config)
+        calibrated = loaded.config(config)
+        bags = sorted(p for p in folder.glob(f"{name}_*") if p.is_dir() or p.suffix == ".mcap")
+        train, test = bags[: args.train], bags[args.train:]
+        for factor in (float(s) for s in args.scales.split(",")):
+            noise = calibrated.noise._replace(process=np.asarray(calibrated.noise.process) * factor)
+            scaled = replace(calibrated, noise=noise)
+            estimator = estimator_for(scaled, loaded.coeffs, loaded.effects)
+            rows = [bag_figures(estimate_bag(scaled, bag, estimator), config.noise_rms) for bag in test]
+            fits = [estimate_bag(scaled, bag, estimator).estimate for bag in train]
+            nll, loo = criteria(fits, np.asarray(noise.measurement))
+
+            def worst(key: str) -> float:
+                return max(abs(r[key]) for r in rows)
+
+            print(
+                f"| {name} | {factor:g} | {worst('peak_axial_error_percent'):.1f} | "
+                f"{worst('peak_radial_error_percent'):.1f} | {worst('force_rmse_percent_of_peak'):.1f} | "
+                f"{min(r['force_band_coverage_percent'] for r in rows):.0f} | {nll:.4f} | {1e6 * loo:.4f} |",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

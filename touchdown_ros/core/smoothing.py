@@ -1,0 +1,55 @@
+"""How much process noise the smoothed answer wants: leave-one-out cross-validation of the RTS smoother.
+
+The likelihood that stage 1 maximises fits Q for one-step prediction, which is what the live
+filter does. The offline answer is the smoothed estimate, and there a smaller Q often serves
+better: the smoother then averages the sensor noise over more samples where the model holds
+(docs/calibration.md, "Process noise for the smoothed answer"). Which factor on Q is right is
+decided on displacements alone, by how well the smoother predicts each sample from all the
+others. For a linear(ised) smoother that needs no refit per sample: with y_k = h(xi_k) + v_k,
+v_k ~ N(0, R), the smoothed estimate moves with y_k by H P_{k|N} H^T R^-1, so the residual of
+y_k from the smoother fitted without it is
+
+    e_k = (I - H P_{k|N} H^T R^-1)^-1 (y_k - h(xi_{k|N}))
+
+(the Kalman update of the leave-one-out estimate with y_k, solved for it), as generalised
+cross-validation does for smoothing splines.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from touchdown_ros.core.ekf import Belief, Measurement, ekf, inverse_and_det_3x3, model_measurement, rts_smoother
+from touchdown_ros.core.training import Batch
+from touchdown_ros.core.types import OUTPUT_SIZE, FilterNoise, Model
+
+
+def leave_one_out_residuals(measure: Measurement, smoothed: Belief, etas: Array, R: Array) -> Array:
+    """(N, 3) m: the residual of each measurement (N, 3) from the smoother fitted to all the others
+    (module docstring), from the smoothed beliefs of a record, its measurement function h and R (3, 3);
+    NaN where y_k is missing."""
+
+    def one(mean: Array, cov: Array, eta: Array) -> Array:
+        expected, H = measure(mean)
+        influence = H @ cov @ H.T @ inverse_and_det_3x3(R)[0]
+        return inverse_and_det_3x3(jnp.eye(OUTPUT_SIZE, dtype=mean.dtype) - influence)[0] @ (eta - expected)
+
+    return jax.vmap(one)(smoothed.mean, smoothed.cov, etas)
+
+
+@jax.jit
+def leave_one_out_error(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
+    """Root mean square (m) of the leave-one-out residuals over the batch's valid samples and axes:
+    filter and smoother of every record with `noise`, each with its effects' gates."""
+    R = jnp.diag(noise.measurement)
+
+    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> tuple[Array, Array]:
+        gated = model._replace(effects=model.effects.with_gates(gates))
+        smoothed = rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas))
+        residuals = leave_one_out_residuals(model_measurement(gated), smoothed, etas, R)
+        squares = jnp.where(valid[:, None], residuals * residuals, 0.0)
+        return jnp.sum(squares), jnp.sum(valid) * OUTPUT_SIZE
+
+    total, count = jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+    return jnp.sqrt(jnp.sum(total) / jnp.sum(count))
