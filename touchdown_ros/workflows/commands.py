@@ -123,7 +123,13 @@ def estimate_bags(
                 plot_estimate(result, figure)
             results.append(result)
         write_summaries(
-            results, out, {"coefficients": str(coefficients) if coefficients else "constant model", "estimate": answer}
+            results,
+            out,
+            {
+                "coefficients": str(coefficients) if coefficients else "constant model",
+                "estimate": answer,
+                "process_noise": f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)",
+            },
         )
     return results
 

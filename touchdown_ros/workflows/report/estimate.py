@@ -78,14 +78,17 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
     return written_files
 
 
-def summary_table(results: Sequence[BagEstimate]) -> str:
-    """Markdown: which estimate the figures are of, then a table of the per-bag summaries."""
+def summary_table(results: Sequence[BagEstimate], process_noise: str | None = None) -> str:
+    """Markdown: which estimate the figures are of (and with which process noise), then a table of the
+    per-bag summaries."""
     answers = sorted({result.answer for result in results})
     which = " and ".join(f"{ANSWER_LABELS[a]} ({a})" for a in answers)
     intro = (
         f"Estimate written and summarised: **{which}**. The RTS smoother uses the whole record; the EKF "
         "(`--filtered`) only the samples up to each one, as the live node does. sigma: 1-sigma of the "
-        "contact force, linearised through the estimate's covariance.\n\n"
+        "contact force, linearised through the estimate's covariance."
+        + (f" Process noise: {process_noise}." if process_noise else "")
+        + "\n\n"
     )
     header = (
         "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
@@ -138,4 +141,4 @@ def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     document = {"bags": {str(r.path): r.summary for r in results}, **(extra or {})}
     (out / "summary.json").write_text(json.dumps(document, indent=2))
-    (out / "summary.md").write_text(summary_table(results))
+    (out / "summary.md").write_text(summary_table(results, (extra or {}).get("process_noise")))
