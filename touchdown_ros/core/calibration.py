@@ -2,7 +2,8 @@
 
 The six constants (k_R, c_R, mu, k_Z, c_Z, k_ZR: positive) are fitted on a log scale,
 together with two factors on the process noise Q (radial and axial block, `nll` loss only)
-and the active effects' parameters, by minimising
+and the active effects' parameters (each divided by the change that moves its effect's force by
+the rotor's weight rms along the data, `data_scales`; no prior), by minimising
 
     J = [sum over samples of the output error (core.training)
          + sum_i ((ln f0_i - ln guess_i) / prior_width)^2 + sum_j (ln q_j / Q_PRIOR_WIDTH)^2] / N
