@@ -11,6 +11,7 @@ from touchdown_ros.workflows.calibrate import bic
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
+    data_scales,
     place_centres,
     sensor_noise,
     standard_errors,
@@ -18,7 +19,10 @@ from touchdown_ros.core.calibration import (
 )
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.types import ContactLaw, Nominal
+from touchdown_ros.io.config import load_config
 from touchdown_ros.sim.family import variant, variant_config, write_rig_yaml, write_variant_bags
+
+from conftest import library_effects
 
 GUESS = Nominal(k_R=5e8, c_R=3.5e4, mu=0.1, k_Z=5e8, c_Z=3.5e4, k_ZR=0.05)
 
@@ -110,6 +114,37 @@ def test_standard_errors_of_a_known_quadratic():
     noisy = np.diag([2.0 / 0.04 / n, -1e-9])
     sd, _ = standard_errors(noisy, n, prior_sd=np.array([np.inf, 1.6]))
     np.testing.assert_allclose(sd, [0.2, 1.6], rtol=1e-9)
+
+
+def test_stage1_scales_move_each_effect_by_the_rotor_weight_where_it_acts():
+    """One stage-1 coordinate moves an effect's force by m g rms along the states where it acts,
+    whatever the parameter's unit and start (a drag started at 10 N s/m, a brake rate at 0.1 1/s):
+    checked against finite differences of the effect's own force."""
+    effects = library_effects(["viscous_friction", "brake_decay", "contact_exponent"])
+    model = load_config().model(effects=effects)
+    rig = model.rig
+    t = np.arange(1500) * 1e-4  # a 0.15 s record from the drop onset
+    states = np.zeros((len(t), 7))
+    states[:, 3] = rig.speed * t  # theta = 0 at the onset: the brake's force grows from zero
+    states[:, 4], states[:, 5], states[:, 6] = 0.1 * np.sin(300 * t), 0.1 * np.cos(300 * t), -0.02
+    weight = rig.mass * rig.gravity
+    scales = data_scales(model, states, np.ones((len(t), 3), bool))
+    for i, name in ((0, "c_radial"), (0, "c_axial"), (1, "rate")):
+        effect, values = effects.effects[i], effects.params[i]
+        step = 1e-6 * values[name]
+        moved = np.array([
+            np.asarray(effect.function(jnp.asarray(xi), {**values, name: values[name] + step}, rig))
+            - np.asarray(effect.function(jnp.asarray(xi), values, rig))
+            for xi in states
+        ]) / step
+        assert scales.params[i][name] == pytest.approx(weight / np.sqrt(np.mean(np.sum(moved**2, axis=1))), rel=1e-4)
+    assert scales.params[0]["c_radial"] > 1e4 and scales.params[1]["rate"] > 1.0  # far from their starts 10, 0.1
+    # no axial contact in these states: the contact effect moves no force and keeps its start as its scale
+    assert scales.params[2] == {"K": 100.0, "n": 1.5}
+    # an effect switched off in every record (its gate) keeps its start too
+    acts = np.ones((len(t), 3), bool)
+    acts[:, 1] = False
+    assert data_scales(model, states, acts).params[1] == {"rate": 0.1}
 
 
 def test_centres_are_placed_over_the_contact_samples():

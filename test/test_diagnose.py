@@ -229,6 +229,20 @@ def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_
     assert "missing effect: axial_load" in text
 
 
+def test_stage1_moves_an_effect_started_far_from_its_value(family_load_bags, tmp_path):
+    """Issue 16 item 4: `touchdown train` with the loader's effect switched on from a start 200x too
+    small (10 N for about 2000 N) fits it within 10 %. Stage 1 scales an effect's parameters by the
+    force they move along the data, not by their start (which left it at 14 N)."""
+    bags, rig, truths = family_load_bags
+    mean_load = float(np.mean([t.axial_load for t in truths]))
+    coeffs = _calibrated(
+        bags, tmp_path / "with_load.yaml", "--config", str(rig), "--duration", "0.15",
+        "-p", "effects.active:=[axial_load]", "-p", "effects.axial_load.force:=10.0",
+    )
+    fitted = yaml.safe_load(coeffs.read_text())["effects"]["axial_load"]["parameters"]["force"]
+    assert abs(fitted - mean_load) < 0.1 * mean_load, (fitted, mean_load)
+
+
 # Hidden library effects on family rigs (bench/workbench_family.py measures these and more; its table
 # is in docs/workbench.md): the simulator keys, the library effect, the identifiable size of the truth
 # from the drops' truth constants and the fitted parameters, and the held-out k-step ratio required on

@@ -139,3 +139,19 @@ def test_gates_follow_the_recorded_conditions():
     assert fx.gates_for(effects, {}) == (0.0, 1.0)  # not recorded: the conditional effect is off
     with pytest.raises(ConfigError, match="not in effects.active"):
         load_config(overrides={"effects.when.axial_load": "axial_load"})
+
+
+def test_brake_decay_gives_the_braked_rotors_unbalance_with_its_lagging_angle():
+    """With the model's unbalance m e omega^2 (cos, sin) theta at theta = omega t, the effect makes it
+    m e omega_t^2 (cos, sin) phi: the speed omega_t = omega (1 - rate t), the angle phi its integral."""
+    rig = load_config().rig
+    effect, me, omega = fx.LIBRARY["brake_decay"], rig.mass * rig.eccentricity, rig.speed
+    for t in (0.0, 0.02, 0.15):
+        theta = omega * t
+        xi = jnp.array([0.0, 0.0, 0.0, theta, 0.0, 0.0, 0.0])
+        model = me * omega**2 * np.array([np.cos(theta), np.sin(theta), 0.0])
+        np.testing.assert_allclose(effect.function(xi, {"rate": 0.0}, rig), 0.0, atol=1e-9)
+        braked = np.asarray(effect.function(xi, {"rate": 0.8}, rig)) + model
+        w, phi = omega * (1.0 - 0.8 * t), omega * (t - 0.4 * t * t)
+        expected = me * w * w * np.array([np.cos(phi), np.sin(phi), 0.0])
+        np.testing.assert_allclose(braked, expected, atol=1e-6 * me * omega**2)

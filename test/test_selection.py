@@ -4,7 +4,7 @@ import numpy as np
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core import selection as sel
-from touchdown_ros.core.calibration import Coordinates, Stage1, stage1_flags
+from touchdown_ros.core.calibration import Coordinates, Stage1, force_scaled, stage1_flags
 from touchdown_ros.core.types import PARAMETER_NAMES
 from touchdown_ros.io.config import load_config
 
@@ -52,7 +52,7 @@ def test_candidate_scales_move_the_force_by_the_given_size():
     effects = sel.with_candidates(fx.Effects(), [fx.LIBRARY["axial_load"], fx.LIBRARY["magnetic_stiffness"]])
     model = load_config().model()._replace(effects=effects)
     states = jnp.zeros((50, 7)).at[:, 2].set(jnp.linspace(-1e-4, 1e-4, 50))
-    scaled = sel.force_scaled(effects, ["axial_load", "magnetic_stiffness"], states, model, 2000.0)
+    scaled = force_scaled(effects, ["axial_load", "magnetic_stiffness"], states, model, 2000.0)
     assert abs(scaled.params[0]["force"] - 2000.0) < 1e-9
     rms_z = float(jnp.sqrt(jnp.mean(states[:, 2] ** 2)))
     np.testing.assert_allclose(scaled.params[1]["k_axial"], 2000.0 / rms_z)

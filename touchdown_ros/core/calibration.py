@@ -2,7 +2,8 @@
 
 The six constants (k_R, c_R, mu, k_Z, c_Z, k_ZR: positive) are fitted on a log scale,
 together with two factors on the process noise Q (radial and axial block, `nll` loss only)
-and the active effects' parameters, by minimising
+and the active effects' parameters (each divided by the change that moves its effect's force by
+the rotor's weight rms along the data, `data_scales`; no prior), by minimising
 
     J = [sum over samples of the output error (core.training)
          + sum_i ((ln f0_i - ln guess_i) / prior_width)^2 + sum_j (ln q_j / Q_PRIOR_WIDTH)^2] / N
@@ -28,6 +29,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh
 
 from touchdown_ros.core.diagnostics.breakdown import deformations
+from touchdown_ros.core.diagnostics.regressors import effect_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.training import Batch, output_error
@@ -84,8 +86,37 @@ def log_nominal(nominal: Nominal) -> np.ndarray:
 
 def effect_scales(effects: Effects) -> Effects:
     """Each effect parameter's magnitude (its starting value, at least 1e-6): the optimiser works
-    on parameter / scale so that a load in N and a ratio share one step length."""
+    on parameter / scale. The fallback of `force_scaled` for a parameter that moves no force."""
     return Effects(effects.effects, tuple({k: max(abs(float(v)), 1e-6) for k, v in p.items()} for p in effects.params))
+
+
+def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Model, force: float) -> Effects:
+    """`scales` (`effect_scales`) with the named effects' parameter scales replaced by the change
+    that moves the effect's force by `force` N rms along the states (N, 7), linearised at the
+    effect's values in `model.effects` (its defaults if it is not there): every coordinate then
+    moves the model alike, whatever its unit (a stiffness in N/m, a load in N, a drag in N s/m
+    started at 10 for 3000); a parameter that moves no force there keeps its scale."""
+    values = dict(zip(model.effects.names, model.effects.params))
+    params = []
+    for e, p in zip(scales.effects, scales.params):
+        if e.name not in names:
+            params.append(p)
+            continue
+        at = {k: float(v) for k, v in values[e.name].items()} if e.name in values else None
+        jacobian = np.asarray(effect_regressors(e, states, model, at)[0])  # (N, 3, p) in parameter order
+        rms = np.sqrt(np.nanmean(np.sum(jacobian**2, axis=1), axis=0)) if len(jacobian) else np.zeros(len(p))
+        params.append({k: float(force / r) if np.isfinite(r) and r > 0.0 else p[k] for k, r in zip(e.parameters, rms)})
+    return Effects(scales.effects, tuple(params), scales.gates)
+
+
+def data_scales(model: Model, states: np.ndarray, acts: np.ndarray) -> Effects:
+    """Stage 1's scales of `model.effects`' parameters: `force_scaled` by the rotor's weight along
+    the states (N, 7) where each effect acts (acts (N, E): its gate on), from its values there."""
+    weight = float(model.rig.mass) * float(model.rig.gravity)
+    scales = effect_scales(model.effects)
+    for i, name in enumerate(model.effects.names):
+        scales = force_scaled(scales, [name], jnp.asarray(states[acts[:, i]]), model, weight)
+    return scales
 
 
 def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Effects:

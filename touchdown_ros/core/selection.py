@@ -29,7 +29,6 @@ from jax import Array
 from touchdown_ros.core.calibration import filtered_states
 from touchdown_ros.core.diagnostics.breakdown import PHASES, contact_phase, deformations
 from touchdown_ros.core.diagnostics.prediction import k_step_predictions
-from touchdown_ros.core.diagnostics.regressors import effect_regressors
 from touchdown_ros.core.dynamics import measurement
 from touchdown_ros.core.effects import Effect, Effects
 from touchdown_ros.core.training import Batch, sample_errors
@@ -56,22 +55,6 @@ def candidate_gates(model_gates: np.ndarray, count: int, chosen: int | None) -> 
     if chosen is not None:
         extra[:, chosen] = 1.0
     return np.concatenate([model_gates, extra], axis=1)
-
-
-def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Model, force: float) -> Effects:
-    """`scales` (`core.calibration.effect_scales`) with the named effects' parameter scales replaced
-    by the change that moves the effect's force by `force` N rms along the states (N, 7): every
-    candidate's coordinate then moves the model alike, whatever its unit (a stiffness in N/m and a
-    load in N); a parameter that moves no force there keeps its scale."""
-    params = []
-    for e, p in zip(scales.effects, scales.params):
-        if e.name not in names:
-            params.append(p)
-            continue
-        jacobian = np.asarray(effect_regressors(e, states, model)[0])  # (N, 3, p) in parameter order
-        rms = np.sqrt(np.nanmean(np.sum(jacobian**2, axis=1), axis=0))
-        params.append({k: float(force / r) if np.isfinite(r) and r > 0.0 else p[k] for k, r in zip(e.parameters, rms)})
-    return Effects(scales.effects, tuple(params), scales.gates)
 
 
 def contact_phases(states: np.ndarray, rig: Rig) -> np.ndarray:

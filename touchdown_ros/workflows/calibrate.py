@@ -18,6 +18,7 @@ from touchdown_ros.core.calibration import (
     Stage1,
     apply_scales,
     convert_guess,
+    data_scales,
     effect_scales,
     filtered_states,
     log_nominal,
@@ -114,9 +115,9 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
     h, kind, mesh = config.sample_period, settings.loss, record_mesh()
     effects = config.effects
-    scales = effect_scales(effects)
     batch = training_batch(config, data, effects)
     note_ungated(effects, batch, stream)
+    scales = start_scales(config.model(), noise, h, batch)
     n_valid = int(np.sum(np.asarray(batch.valid)))
     fit_q = kind == "nll"
 
@@ -255,6 +256,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
+    relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
     law = law.with_support(float(model.law.support_preload), float(model.law.support_span))
@@ -269,6 +271,31 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+def start_scales(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Effects:
+    """The scales of the model's effects' parameters in stage 1 (`core.calibration.data_scales`):
+    each moves its effect's force by the rotor's weight along the records' states, filtered with the
+    starting model (the guess, the effects at their starting values), where the effect acts."""
+    if not model.effects:
+        return effect_scales(model.effects)
+    states = np.asarray(filtered_states(model, noise, h, batch)[0])
+    valid = np.asarray(batch.valid)
+    acts = np.broadcast_to(np.asarray(batch.gates)[:, None, :] > 0.5, (*valid.shape, len(model.effects)))
+    return data_scales(model, states[valid], acts[valid])
+
+
+def effect_relative_sd(sd: dict[str, float], scaled: Effects, scales: Effects) -> dict[str, float]:
+    """The effects' entries of `sd` (posterior sd of a scaled coordinate, "effect.parameter") as
+    the sd of the parameter over its fitted |value| (inf at 0), like the sd of ln f0."""
+    out = {}
+    for e, values, scale in zip(scaled.effects, scaled.params, scales.params):
+        for k, v in values.items():
+            name = f"{e.name}.{k}"
+            if name in sd:
+                value = abs(float(v) * scale[k])
+                out[name] = sd[name] * scale[k] / value if value > 0.0 else float("inf")
+    return out
 
 
 class Candidate(NamedTuple):
