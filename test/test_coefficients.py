@@ -15,6 +15,7 @@ from touchdown_ros.io.coefficients import (
     sha256_of,
 )
 from touchdown_ros.io.config import load_config, reference_rig_path
+from touchdown_ros.workflows.offline import estimator_for
 
 CONFIG = load_config()
 
@@ -107,6 +108,9 @@ def test_file_carries_the_smoothing_noise_scale_and_the_offline_estimate_uses_it
     assert loaded.smoothing_noise_scale == 0.37
     np.testing.assert_array_equal(loaded.noise.process, CONFIG.noise.process)
     np.testing.assert_array_equal(loaded.offline_noise().process, np.asarray(CONFIG.noise.process) * 0.37)
+    smoothed, filtered = (estimator_for(loaded, answer=answer) for answer in ("smoothed", "filtered"))
+    np.testing.assert_array_equal(smoothed.noise.process, np.asarray(CONFIG.noise.process) * 0.37)
+    np.testing.assert_array_equal(filtered.noise.process, CONFIG.noise.process)  # the live node's Q
     document = yaml.safe_load(path.read_text())
     del document["filter"]["smoothing_noise_scale"]
     path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))

@@ -260,4 +260,5 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         )
 
     estimate.model = model  # what it was compiled for (estimate_bag gates its effects per bag)
+    estimate.noise = noise
     return estimate

@@ -109,8 +109,8 @@ def estimate_bags(
         refuse_existing(target, overwrite)
     for bag in bags:  # every bag is checked before anything is written
         check_bag(config, bag)
-    estimator = estimator_for(config, *((loaded.coeffs, loaded.effects) if loaded else (None, None)))
     answer = FILTERED if filtered else SMOOTHED
+    estimator = estimator_for(config, *((loaded.coeffs, loaded.effects) if loaded else (None, None)), answer=answer)
     figure_dirs = [out / "figures" / Path(bag).name for bag in bags]
     written = [out, *targets, out / "figures", *figure_dirs, out / "summary.json", out / "summary.md"]
     results = []
@@ -128,7 +128,11 @@ def estimate_bags(
             {
                 "coefficients": str(coefficients) if coefficients else "constant model",
                 "estimate": answer,
-                "process_noise": f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)",
+                "process_noise": (
+                    f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)"
+                    if answer == SMOOTHED
+                    else "the fitted Q, as the live node's"
+                ),
             },
         )
     return results

@@ -10,7 +10,7 @@ import numpy as np
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.metrics import peak_errors_per_impact, relative_peak_error, rmse
 from touchdown_ros.io.config import Config
-from touchdown_ros.workflows.offline import BagEstimate, estimate_bag, estimator_for
+from touchdown_ros.workflows.offline import FILTERED, BagEstimate, estimate_bag, estimator_for
 from touchdown_ros.workflows.progress import progress
 from touchdown_ros.workflows.train import Trainable, fit, load_training_data, make_objective
 
@@ -86,7 +86,7 @@ class _Quiet:
 def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) -> list[BagComparison]:
     """Estimate each bag with the paper's constant model (ref. [13], no add-on effects) and with
     its trained model (PKBKR coefficients and the effects they were fitted with)."""
-    estimator = estimator_for(config, effects=Effects())
+    estimator = estimator_for(config, effects=Effects(), answer=FILTERED)  # the figures are the filtered estimate's
     results = []
     for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
         constant = estimate_bag(config, path, estimator)

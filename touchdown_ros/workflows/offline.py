@@ -71,10 +71,15 @@ class BagEstimate:
         return answer_of(self.estimate, self.answer)
 
 
-def estimator_for(config: Config, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Estimator:
+def estimator_for(
+    config: Config, coeffs: Coefficients | None = None, effects: Effects | None = None, answer: str = SMOOTHED
+) -> Estimator:
     """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
-    effects unless others, e.g. a coefficient file's, are given), with the offline filter noise."""
-    return make_estimator(config.model(coeffs, effects), config.offline_noise(), config.sample_period)
+    effects unless others, e.g. a coefficient file's, are given) for the `answer` it is read for:
+    the smoothed one with the offline process noise (`Config.offline_noise`), the filtered one with
+    the fitted Q, as the live node filters."""
+    noise = config.offline_noise() if check_answer(answer) == SMOOTHED else config.noise
+    return make_estimator(config.model(coeffs, effects), noise, config.sample_period)
 
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:
