@@ -155,3 +155,54 @@ def test_brake_decay_gives_the_braked_rotors_unbalance_with_its_lagging_angle():
         w, phi = omega * (1.0 - 0.8 * t), omega * (t - 0.4 * t * t)
         expected = me * w * w * np.array([np.cos(phi), np.sin(phi), 0.0])
         np.testing.assert_allclose(braked, expected, atol=1e-6 * me * omega**2)
+
+
+def _nested_force_equivalent(effect, model, xi, params):
+    """The force a measurement effect stands for, by nested forward derivatives of phi (the
+    definition: m (d^2 D / dt^2 - A (D, 0, dD/dt)) with the time derivatives along phi)."""
+    def rate(s):
+        return phi(model, s)
+
+    def change_rate(s):
+        return jax.jvp(lambda q: effect.function(q, params, model.rig), (s,), (rate(s),))[1]
+
+    change = effect.function(xi, params, model.rig)
+    change_velocity, change_acceleration = jax.jvp(change_rate, (xi,), (rate(xi),))
+    shift = jnp.concatenate([change, jnp.zeros(1), change_velocity])
+    return model.rig.mass * (change_acceleration - jax.jvp(lambda s: rate(s)[4:], (xi,), (shift,))[1])
+
+
+@fx.effect("z_curvature", {"a": (3.0e3, "1/m", "sensor reads z + a x^2")}, kind=fx.MEASUREMENT)
+def _z_curvature(xi, p, rig):
+    return jnp.stack([0.0 * xi[0], 0.0 * xi[0], p["a"] * xi[0] ** 2])
+
+
+def test_library_regressors_share_phi_and_equal_the_nested_definition():
+    """`library_regressors` computes phi and its Jacobian once per state for every measurement effect;
+    each force equivalent (and its parameter Jacobian) equals the nested-derivative definition, for the
+    sensor errors and for a nonlinear user effect (its second derivative enters), free and in contact."""
+    from touchdown_ros.core.diagnostics.regressors import effect_regressors, library_regressors
+
+    model = load_config().model()
+    states = jnp.array([
+        [1e-4, -0.5e-4, -1e-4, 0.3, 0.01, -0.02, -0.05],  # free
+        [1.5e-4, 1.6e-4, -1e-4, 1.1, 0.03, -0.01, 0.02],  # radial contact
+        [-2.0e-4, 0.9e-4, -3.1e-4, 4.0, -0.04, 0.03, 0.01],  # both contacts
+    ])
+    effects = {name: fx.LIBRARY[name] for name in ("sensor_gain_x", "sensor_offset_z", "axial_load")}
+    effects["z_curvature"] = _z_curvature
+    together = library_regressors(effects, states, model)
+    for name, effect in effects.items():
+        params = {k: jnp.asarray(v) for k, v in effect.defaults().items()}
+        J, f0 = together[name]
+        alone = effect_regressors(effect, states, model)
+        np.testing.assert_allclose(np.asarray(J), np.asarray(alone[0]), rtol=1e-12, atol=0)
+        for i, xi in enumerate(states):
+            expected = _nested_force_equivalent(effect, model, xi, params) if effect.kind != fx.FORCE else \
+                effect.function(xi, params, model.rig)
+            np.testing.assert_allclose(np.asarray(f0[i]), np.asarray(expected), rtol=1e-9, atol=1e-9)
+            jac = jax.jacfwd(lambda p: _nested_force_equivalent(effect, model, xi, p) if effect.kind != fx.FORCE
+                             else effect.function(xi, p, model.rig))(params)
+            expected_J = np.stack([np.asarray(jac[k]) for k in params], axis=-1)
+            np.testing.assert_allclose(np.asarray(J[i]), expected_J, rtol=1e-9, atol=1e-9)
+    assert np.abs(np.asarray(together["z_curvature"][1])).max() > 0.0

@@ -22,7 +22,7 @@ from touchdown_ros.core.diagnostics.breakdown import contact_phase, regions, win
 from touchdown_ros.core.diagnostics.frols import RecordRegressors, Ranking, frols_verdict, rank_effects, ranking_rows
 from touchdown_ros.core.diagnostics.missing_force import MissingForce, disturbance_smoother, missing_force_table
 from touchdown_ros.core.diagnostics.prediction import error_metrics, k_step_predictions
-from touchdown_ros.core.diagnostics.regressors import coefficient_regressors, effect_regressors
+from touchdown_ros.core.diagnostics.regressors import coefficient_regressors, library_regressors
 from touchdown_ros.core.diagnostics.residuals import residual_tests
 from touchdown_ros.core.diagnostics.signature import signature
 from touchdown_ros.core.dynamics import measurement as expected_output
@@ -92,9 +92,7 @@ class _Compiled:
             lambda m, init, etas: disturbance_smoother(m, process, measurement, init, etas, h, force_walk)
         )
         self.coefficient_regressors = jax.jit(coefficient_regressors)
-        self.effect_regressors = {
-            name: jax.jit(lambda m, s, e=e: effect_regressors(e, s, m)) for name, e in fx.LIBRARY.items()
-        }
+        self.library_regressors = jax.jit(lambda m, s: library_regressors(fx.LIBRARY, s, m))
 
 
 @functools.lru_cache(maxsize=4)
@@ -155,9 +153,8 @@ def _regressors(b: BagDiagnosis, compiled: _Compiled) -> RecordRegressors:
     n = len(b.phase)
     states = jnp.asarray(_pad(b.missing.state, repeat=True))
     coefficients = np.asarray(compiled.coefficient_regressors(b.model, states))[:n]
-    effects = {}
-    for name, function in compiled.effect_regressors.items():
-        effects[name] = tuple(np.asarray(a)[:n] for a in function(b.model, states))
+    regressors = compiled.library_regressors(b.model, states)
+    effects = {name: tuple(np.asarray(a)[:n] for a in pair) for name, pair in regressors.items()}
     return RecordRegressors(b.missing.force, b.missing.force_std, coefficients, effects)
 
 

@@ -1,9 +1,9 @@
 """Regressors along a trajectory: how the model's force moves with its PKBKR coefficients and with
-each candidate effect's parameters (`core.effects.regressors`; a measurement effect enters by the
-force it stands for, `force_equivalent`), for the ranking of `frols` and the candidates' scales."""
+each candidate effect's parameters (a measurement effect enters by the force it stands for,
+`force_equivalent`), for the ranking of `frols` and the candidates' scales."""
 from __future__ import annotations
 
-import dataclasses
+from typing import Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.diagnostics.missing_force import model_force
 from touchdown_ros.core.dynamics import phi
-from touchdown_ros.core.effects import FORCE, Effect, regressors
+from touchdown_ros.core.effects import FORCE, Effect
 from touchdown_ros.core.types import Model
 
 
@@ -28,45 +28,78 @@ def coefficient_regressors(model: Model, states: Array) -> Array:
     return jax.vmap(lambda xi: jax.jacfwd(force)(flat, xi))(jnp.asarray(states))
 
 
-def force_equivalent(effect: Effect, model: Model) -> Effect:
-    """A measurement effect as the force it stands for; a force effect as it is.
+class Motion(NamedTuple):
+    """The model's rate phi(xi) (7,) and its Jacobian A = d phi / d xi (7, 7) at one state: what every
+    measurement effect's force equivalent needs, computed once for all of them."""
+
+    rate: Array
+    A: Array
+
+
+def motion(model: Model, xi: Array) -> Motion:
+    """`Motion` of the model at state xi."""
+    return Motion(phi(model, xi), jax.jacfwd(lambda s: phi(model, s))(xi))
+
+
+def force_equivalent(effect: Effect, xi: Array, params, rig, mass: float, at: Motion) -> Array:
+    """(3,) N: a measurement effect as the force it stands for at xi; a force effect's force as it is.
 
     A measurement effect that changes the sensor output by D(xi) (m) makes a model without it
     follow the state xi + (D, 0, dD/dt), whose motion needs the extra force (first order in D)
     m (d^2 D / dt^2 - A (D, 0, dD/dt)), A = d phi[4:] / d xi, the time derivatives along the
-    model's phi: what the missing force shows of it. E.g. a z gain g in free flight: the constant
-    -(g - 1) m g_0; a z offset: zero in free flight, the contact stiffness times it in contact.
+    model's phi: dD/dt = J_D phi, d^2 D / dt^2 = phi^T H_D phi + J_D A phi (J_D, H_D: D's first and
+    second derivatives). E.g. a z gain g in free flight: the constant -(g - 1) m g_0; a z offset:
+    zero in free flight, the contact stiffness times it in contact.
     """
     if effect.kind == FORCE:
-        return effect
-    mass = model.rig.mass
+        return jnp.asarray(effect.function(xi, params, rig), xi.dtype)
 
-    def rate(xi: Array) -> Array:
-        return phi(model, xi)
+    def change(state: Array) -> Array:
+        return jnp.asarray(effect.function(state, params, rig), xi.dtype)
 
-    def force(xi: Array, params, rig) -> Array:
-        def change_rate(state: Array) -> Array:
-            return jax.jvp(lambda s: effect.function(s, params, rig), (state,), (rate(state),))[1]
+    def change_rate(state: Array) -> Array:
+        return jax.jacfwd(change)(state) @ at.rate
 
-        change = jnp.asarray(effect.function(xi, params, rig), xi.dtype)
-        change_velocity, change_acceleration = jax.jvp(change_rate, (xi,), (rate(xi),))
-        shift = jnp.concatenate([change, jnp.zeros(1, xi.dtype), change_velocity])
-        _, acceleration_shift = jax.jvp(lambda s: rate(s)[4:], (xi,), (shift,))
-        return mass * (change_acceleration - acceleration_shift)
-
-    return dataclasses.replace(effect, function=force, kind=FORCE)
+    change_velocity = change_rate(xi)
+    curvature = jax.jvp(change_rate, (xi,), (at.rate,))[1]  # phi^T H_D phi
+    change_acceleration = curvature + jax.jacfwd(change)(xi) @ (at.A @ at.rate)
+    shift = jnp.concatenate([change(xi), jnp.zeros(1, xi.dtype), change_velocity])
+    return mass * (change_acceleration - at.A[4:] @ shift)
 
 
 def effect_regressors(effect: Effect, states: Array, model: Model, values: dict | None = None) -> tuple[Array, Array]:
     """(N, 3, p) d force / d parameters of one candidate effect along the states, linearised at
     `values` (default: its defaults), and (N, 3) its force there (for the offset of
     nonlinear-in-parameter effects). A measurement effect's force is `force_equivalent`'s."""
-    effect, rig = force_equivalent(effect, model), model.rig
-    p0 = values or effect.defaults()
-    params = {k: jnp.asarray(v) for k, v in p0.items()}
-    J = jax.vmap(lambda xi: regressors(effect, xi, rig, p0))(jnp.asarray(states))
-    f0 = jax.vmap(lambda xi: jnp.asarray(effect.function(xi, params, rig), dtype=xi.dtype))(jnp.asarray(states))
-    return J, f0
+    return library_regressors({effect.name: effect}, states, model, {effect.name: values} if values else None)[
+        effect.name
+    ]
+
+
+def library_regressors(
+    effects: Mapping[str, Effect], states: Array, model: Model, values: Mapping[str, dict] | None = None
+) -> dict[str, tuple[Array, Array]]:
+    """`effect_regressors` of several effects at once, name -> (J (N, 3, p), f0 (N, 3)): the model's
+    rate and its Jacobian along the states (`motion`) are computed once for all measurement effects."""
+    states = jnp.asarray(states)
+    rig, mass = model.rig, model.rig.mass
+    measuring = any(e.kind != FORCE for e in effects.values())
+    motions = jax.vmap(lambda xi: motion(model, xi))(states) if measuring else None
+    out = {}
+    for name, effect in effects.items():
+        p0 = (values or {}).get(name) or effect.defaults()
+        params = {k: jnp.asarray(v, states.dtype) for k, v in p0.items()}
+        names = list(params)
+
+        def force(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
+            return force_equivalent(e, xi, p, rig, mass, at)
+
+        def jacobian(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
+            J = jax.jacfwd(lambda q: force_equivalent(e, xi, q, rig, mass, at))(p)
+            return jnp.stack([J[k] for k in names], axis=-1)
+
+        out[name] = (jax.vmap(jacobian)(states, motions), jax.vmap(force)(states, motions))
+    return out
 
 
 def linearisation_offset(J: np.ndarray, f0: np.ndarray, p0: np.ndarray) -> np.ndarray:
