@@ -29,6 +29,7 @@ from touchdown_ros.io.config import load_config
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
 from touchdown_ros.sim.params import simulator_parameters, truth_constants
+from touchdown_ros.workflows.offline import estimate_bag, estimator_for
 
 DURATION = 0.06  # s simulated after the drop
 
@@ -284,6 +285,46 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
     before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_m"])[axes]
     after = np.asarray(first["held_out_k_step_rmse_m"])[axes]
     assert np.linalg.norm(after) < (k_step_ratio or 1.0) * np.linalg.norm(before), (before, after)
+
+
+def _force_rmse(rig, coefficients, bags):
+    """N, contact force RMSE (norm over x, y, z) of the smoothed estimates of `bags` against their truth."""
+    config = load_config(rig)
+    loaded = load_coefficients(coefficients, config)
+    calibrated = loaded.config(config)
+    estimator = estimator_for(calibrated, loaded.coeffs, loaded.effects)
+    squares = []
+    for bag in bags:
+        result = estimate_bag(calibrated, bag, estimator)
+        squares.append(np.sum((np.asarray(result.estimate.smoothed.force_xyz) - result.truth.contact_force) ** 2, 1))
+    return float(np.sqrt(np.nanmean(np.concatenate(squares))))
+
+
+def test_a_hidden_magnetic_stiffness_is_named_sized_and_halves_the_force_error(tmp_path):
+    """The whole gate for one more library effect: a residual negative magnetic stiffness of 1e7 N/m
+    (radial and axial) on soft_bearing is named, its diagnose fit and `touchdown train` with it are
+    within 10 % of the truth, and the contact force error against the truth falls to at most half."""
+    bags, rig, _ = _family(
+        tmp_path / "bags", "soft_bearing", magnetic_stiffness_radial=1.0e7, magnetic_stiffness_axial=1.0e7
+    )
+    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
+    out = tmp_path / "diagnosis"
+    assert (
+        main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    )
+    verdict = _diagnosis(out)["models"][0]["verdict"]
+    assert verdict["explained"] and verdict["best"] == "magnetic_stiffness", verdict["text"]
+    first = verdict["candidates"][0]
+    for name, value in first["parameters"].items():
+        assert abs(value["value"] - 1.0e7) < 1.0e6, (name, value)
+    with_it = _calibrated(
+        bags, tmp_path / "with.yaml", "--config", str(rig), "--duration", "0.15",
+        "-p", "effects.active:=[magnetic_stiffness]",
+    )
+    fitted = yaml.safe_load(with_it.read_text())["effects"]["magnetic_stiffness"]["parameters"]
+    assert all(abs(v - 1.0e7) < 1.0e6 for v in fitted.values()), fitted
+    before, after = _force_rmse(rig, calibrated, bags), _force_rmse(rig, with_it, bags)
+    assert after <= 0.5 * before, (before, after)
 
 
 @pytest.fixture(scope="module")
