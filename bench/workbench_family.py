@@ -35,9 +35,8 @@ import numpy as np
 import yaml
 
 from touchdown_ros.cli import main as touchdown
-from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import load_config
-from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+from touchdown_ros.workflows.offline import force_rmse_against_truth
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
 from touchdown_ros.sim.params import simulator_parameters, truth_constants
 from touchdown_ros.sim.physics import Truth
@@ -139,16 +138,7 @@ def fitted_effect(path: Path, effect: str) -> dict[str, float]:
 
 def force_rmse(config_path: Path, coefficients: Path, bags: list[Path]) -> float:
     """N, contact force RMSE (norm over x, y, z) of the smoothed estimate against the truth, all bags."""
-    config = load_config(config_path)
-    loaded = load_coefficients(coefficients, config)
-    calibrated = loaded.config(config)
-    estimator = estimator_for(calibrated, loaded.coeffs, loaded.effects)
-    squares = []
-    for bag in bags:
-        result = estimate_bag(calibrated, bag, estimator)
-        error = np.asarray(result.estimate.smoothed.force_xyz) - result.truth.contact_force
-        squares.append(np.sum(error**2, axis=1))
-    return float(np.sqrt(np.nanmean(np.concatenate(squares))))
+    return force_rmse_against_truth(load_config(config_path), coefficients, bags)
 
 
 def _relative_errors(fitted: Mapping[str, float], truth: Mapping[str, float]) -> dict[str, float]:

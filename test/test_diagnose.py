@@ -29,7 +29,7 @@ from touchdown_ros.io.config import load_config
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
 from touchdown_ros.sim.params import simulator_parameters, truth_constants
-from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+from touchdown_ros.workflows.offline import force_rmse_against_truth
 
 DURATION = 0.06  # s simulated after the drop
 
@@ -287,19 +287,6 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
     assert np.linalg.norm(after) < (k_step_ratio or 1.0) * np.linalg.norm(before), (before, after)
 
 
-def _force_rmse(rig, coefficients, bags):
-    """N, contact force RMSE (norm over x, y, z) of the smoothed estimates of `bags` against their truth."""
-    config = load_config(rig)
-    loaded = load_coefficients(coefficients, config)
-    calibrated = loaded.config(config)
-    estimator = estimator_for(calibrated, loaded.coeffs, loaded.effects)
-    squares = []
-    for bag in bags:
-        result = estimate_bag(calibrated, bag, estimator)
-        squares.append(np.sum((np.asarray(result.estimate.smoothed.force_xyz) - result.truth.contact_force) ** 2, 1))
-    return float(np.sqrt(np.nanmean(np.concatenate(squares))))
-
-
 def test_a_hidden_magnetic_stiffness_is_named_sized_and_halves_the_force_error(tmp_path):
     """The whole gate for one more library effect: a residual negative magnetic stiffness of 1e7 N/m
     (radial and axial) on soft_bearing is named, its diagnose fit and `touchdown train` with it are
@@ -323,7 +310,8 @@ def test_a_hidden_magnetic_stiffness_is_named_sized_and_halves_the_force_error(t
     )
     fitted = yaml.safe_load(with_it.read_text())["effects"]["magnetic_stiffness"]["parameters"]
     assert all(abs(v - 1.0e7) < 1.0e6 for v in fitted.values()), fitted
-    before, after = _force_rmse(rig, calibrated, bags), _force_rmse(rig, with_it, bags)
+    config = load_config(rig)
+    before, after = (force_rmse_against_truth(config, c, bags) for c in (calibrated, with_it))
     assert after <= 0.5 * before, (before, after)
 
 

@@ -28,6 +28,7 @@ from touchdown_ros.io.bags import (
     read_truth,
     write_bag,
 )
+from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import Config
 from touchdown_ros.io.estimate_topics import estimate_series
 
@@ -110,6 +111,22 @@ def estimate_bag(
     summary = summarise(estimate, truth, config, answer)
     summary["input"] = input_summary(record, restarts)
     return BagEstimate(path, estimate, truth, summary, answer, restarts)
+
+
+def force_rmse_against_truth(config: Config, coefficients: str | Path, bags: list[str | Path]) -> float:
+    """N, the contact force RMSE (norm over x, y, z) of the smoothed estimates of simulated `bags`
+    (their /truth topics) with a coefficient file's model, over all their samples."""
+    loaded = load_coefficients(coefficients, config)
+    calibrated = loaded.config(config)
+    estimator = estimator_for(calibrated, loaded.coeffs, loaded.effects)
+    squares = []
+    for bag in bags:
+        result = estimate_bag(calibrated, bag, estimator)
+        if result.truth is None:
+            raise ValueError(f"{bag}: no /truth topics to compare the contact force with")
+        error = np.asarray(result.estimate.smoothed.force_xyz) - result.truth.contact_force
+        squares.append(np.sum(error**2, axis=1))
+    return float(np.sqrt(np.nanmean(np.concatenate(squares))))
 
 
 def estimate_record(
