@@ -163,7 +163,7 @@ class Config:
 
     def offline_noise(self) -> FilterNoise:
         """The filter noise of the offline (smoothed) estimate: Q scaled by the factor the training chose
-        for smoothing (`core.calibration.smoothing_scale`; 1 without a coefficient file). The live
+        for smoothing (`workflows.train.choose_smoothing_scale`; 1 without a coefficient file). The live
         node filters with `noise` as it is."""
         return self.noise._replace(process=np.asarray(self.noise.process) * self.smoothing_noise_scale)
 

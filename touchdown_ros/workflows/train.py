@@ -24,7 +24,7 @@ from touchdown_ros.core.calibration import (
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.smoothing import leave_one_out_error
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
-from touchdown_ros.core.types import Coefficients
+from touchdown_ros.core.types import Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
@@ -190,12 +190,16 @@ class SmoothingScale(NamedTuple):
     how: str
 
     def as_dict(self) -> dict:
-        um = (lambda v: None if v is None else round(v * 1e6, 5))
-        return {"scale": round(self.scale, 4), "how": self.how, "leave_one_out_error_um": {
-            "fitted_q": um(self.error_at_one), "chosen": um(self.error)}}
+        def um(value: float | None) -> float | None:
+            return None if value is None else round(value * 1e6, 5)
+
+        errors = {"fitted_q": um(self.error_at_one), "chosen": um(self.error)}
+        return {"scale": round(self.scale, 4), "how": self.how, "leave_one_out_error_um": errors}
 
 
-def choose_smoothing_scale(model, noise, h: float, batch: Batch, stream=sys.stderr) -> SmoothingScale:
+def choose_smoothing_scale(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, stream=sys.stderr
+) -> SmoothingScale:
     """The factor s on Q (within SMOOTHING_SCALE_RANGE) of the lowest leave-one-out smoothing error on
     the training records (`core.smoothing`), by a bounded scalar search on ln s, with progress."""
     started = time.perf_counter()
