@@ -6,9 +6,9 @@ coefficient files `bench/calibration_family.py --out DIR` wrote, scales their Q 
 and estimates the held-out bags (smoothed, stage 1+2) as that bench does: peak force errors and
 force band coverage against the truth, and two criteria a user can compute without the truth on
 the training bags: the innovation negative log-likelihood (what training minimises, per sample)
-and the leave-one-out cross-validated smoothing error, sqrt(mean((y - x_smoothed)^2 / (1 -
-P_smoothed / R)^2)) (the residual of each sample from the smoother's fit to the others, the hat
-diagonal of a linear smoother being P_smoothed R^-1 per axis).
+and the leave-one-out cross-validated smoothing error (`core.smoothing.leave_one_out_residuals`:
+the residual of each sample from the smoother's fit to the others, what `touchdown train` chooses
+the smoothed estimate's factor on Q by).
 
     .venv/bin/python bench/process_noise_scale.py --results DIR [--variants a,b] [--scales 1,0.3,0.1]
 
@@ -22,9 +22,12 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from calibration_family import bag_figures
+from touchdown_ros.core.ekf import Belief, position
+from touchdown_ros.core.smoothing import leave_one_out_residuals
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.sim.family import VARIANTS, variant, variant_config
 from touchdown_ros.workflows.offline import estimate_bag, estimator_for
@@ -39,9 +42,9 @@ def criteria(estimates: list, R: np.ndarray) -> tuple[float, float]:
         used = np.isfinite(nis)
         nll += float(np.sum(nis[used] + np.log(np.linalg.det(S[used]))))
         count += int(np.count_nonzero(used))
-        residual = np.asarray(estimate.measured) - np.asarray(estimate.smoothed.state)[:, :3]
-        P = np.diagonal(np.asarray(estimate.smoothed.state_cov)[:, :3, :3], axis1=1, axis2=2)
-        loo.append((residual / (1.0 - P / R))[np.isfinite(residual).all(axis=1)])
+        smoothed = Belief(jnp.asarray(estimate.smoothed.state), jnp.asarray(estimate.smoothed.state_cov))
+        residual = np.asarray(leave_one_out_residuals(position, smoothed, jnp.asarray(estimate.measured), jnp.diag(R)))
+        loo.append(residual[np.isfinite(residual).all(axis=1)])
     return nll / max(count, 1), float(np.sqrt(np.mean(np.concatenate(loo) ** 2)))
 
 
