@@ -52,16 +52,24 @@ class Stage1(NamedTuple):
     log_f0: Array  # (6,) ln of k_R, c_R, mu, k_Z, c_Z, k_ZR in the law's units
     log_q: Array  # (2,) ln of the factors on Q's radial and axial blocks
     effects: Effects  # active effects, parameters divided by their scales
-    log_support: Array | None = None  # (2,) ln of the axial support's preload and span (N); None: the law's
+    log_support: Array | None = None  # (2,) ln of the axial support's preload and span (N); None: the law's;
+    # +inf: rigid (so rigid and yielding candidates are one program: `RIGID_LOG_SUPPORT`)
 
 
 #: Names of the axial support's coordinates (`Stage1.log_support`).
 SUPPORT_NAMES = ("support_preload", "support_span")
 
 
+#: `Stage1.log_support` of a rigid support (preload and span infinite).
+RIGID_LOG_SUPPORT = (float("inf"), float("inf"))
+
+
 def support_law(law: ContactLaw, log_support: Array) -> ContactLaw:
-    """`law` with the axial support of `log_support` (ln preload, ln span; N)."""
-    return law.with_support(jnp.exp(log_support[0]), jnp.exp(log_support[1]))
+    """`law` with the axial support of `log_support` (ln preload, ln span; N; +inf: rigid)."""
+    finite = jnp.isfinite(log_support)
+    # exp of a finite stand-in where +inf, so the (unused) gradient there is 0, not inf * 0
+    values = jnp.where(finite, jnp.exp(jnp.where(finite, log_support, 0.0)), jnp.inf)
+    return law.with_support(values[0], values[1])
 
 
 def q_factors(log_q: Array) -> Array:
@@ -156,12 +164,14 @@ def stage1_objective(
     batch: Batch,
     kind: str,
     mesh=None,
+    prior_weight: float | Array = 1.0,
 ) -> Array:
-    """J of the module docstring at theta (per valid sample)."""
+    """J of the module docstring at theta (per valid sample), the prior weighted by prior_weight
+    (1/C for each of C chunks of the records: `stage1_value_and_grad_over`)."""
     model, fitted_noise = stage1_model_and_noise(theta, base, noise, scales)
     data = output_error(model, fitted_noise, h, batch, mesh, kind)
     prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
-    return data + prior / jnp.sum(batch.valid)
+    return data + prior_weight * prior / jnp.sum(batch.valid)
 
 
 @functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
@@ -177,12 +187,35 @@ def stage1_value_and_grad(
     h: float,
     kind: str,
     mesh: Mesh | None = None,
+    prior_weight: float | Array = 1.0,
 ) -> tuple[Array, Stage1]:
-    """`stage1_objective` and its gradient, compiled once per (prior width, h, loss, mesh): the model,
-    noise, scales and records (their effects' gates too) are traced, so other values reuse it."""
+    """`stage1_objective` and its gradient, compiled once per (prior width, h, loss, mesh) and batch
+    shape: the model, noise, scales, records (their effects' gates too) and prior weight are traced,
+    so other values reuse it."""
     return jax.value_and_grad(stage1_objective)(
-        theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh
+        theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh, prior_weight
     )
+
+
+def stage1_value_and_grad_over(
+    chunks: Sequence[Batch], theta: Stage1, guess_log_f0: Array, base: Model, noise: FilterNoise, scales: Effects,
+    **static,
+) -> tuple[Array, Stage1]:
+    """`stage1_value_and_grad` of the records of all `chunks` (batches of one shape, so one program
+    serves them all, e.g. the few records the contact laws are screened on and, chunk by chunk, all
+    of them): the chunks' J weighted by their valid samples, the prior counted once."""
+    counts = [jnp.sum(chunk.valid) for chunk in chunks]
+    total = sum(counts)
+    value, grad = 0.0, None
+    for chunk, count in zip(chunks, counts):
+        v, g = stage1_value_and_grad(
+            theta, guess_log_f0, base, noise, scales, chunk, prior_weight=1.0 / len(chunks), **static
+        )
+        share = count / total
+        value = value + share * v
+        scaled = jax.tree.map(lambda leaf: share * leaf, g)
+        grad = scaled if grad is None else jax.tree.map(jnp.add, grad, scaled)
+    return value, grad
 
 
 class Coordinates:
@@ -239,11 +272,11 @@ def stage1_flags(
     fit_q: bool,
     fit_f0: bool = True,
     fitted_effects: Sequence[str] | None = None,
-    fit_support: bool = False,
+    fit_support: bool | None = None,
 ) -> Stage1:
     """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q), the parameters of the
     effects named in fitted_effects (default: all), never the gates, and the axial support
-    (fit_support; its start then needs a `log_support`, otherwise it has none)."""
+    (fit_support True: free, False: held at its start's `log_support`, None: the start has none)."""
     chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
     return Stage1(
         jnp.full(len(PARAMETER_NAMES), float(fit_f0)),
@@ -253,7 +286,7 @@ def stage1_flags(
             tuple({k: float(e.name in chosen) for k in p} for e, p in zip(effects.effects, effects.params)),
             (0.0,) * len(effects),
         ),
-        jnp.ones(len(SUPPORT_NAMES)) if fit_support else None,
+        None if fit_support is None else jnp.full(len(SUPPORT_NAMES), float(fit_support)),
     )
 
 

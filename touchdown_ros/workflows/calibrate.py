@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +13,7 @@ import numpy as np
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
+    RIGID_LOG_SUPPORT,
     SUPPORT_NAMES,
     Coordinates,
     Stage1,
@@ -25,7 +26,7 @@ from touchdown_ros.core.calibration import (
     sensor_noise,
     stage1_flags,
     stage1_model_and_noise,
-    stage1_value_and_grad,
+    stage1_value_and_grad_over,
     standard_errors,
     strongest_correlations,
 )
@@ -43,7 +44,13 @@ from touchdown_ros.workflows.optimise import (
     minimise,
     require_convergence,
 )
-from touchdown_ros.workflows.training_data import TrainingData, note_ungated, record_mesh, training_batch
+from touchdown_ros.workflows.training_data import (
+    TrainingData,
+    note_ungated,
+    record_mesh,
+    training_batch,
+    training_chunks,
+)
 
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
@@ -115,17 +122,24 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
     h, kind, mesh = config.sample_period, settings.loss, record_mesh()
     effects = config.effects
-    batch = training_batch(config, data, effects)
-    note_ungated(effects, batch, stream)
-    scales = start_scales(config.model(), noise, h, batch)
-    n_valid = int(np.sum(np.asarray(batch.valid)))
+    note_ungated(effects, training_batch(config, data, effects), stream)
+    # The contact laws are screened on a few records (one chunk), then refined on all of them chunk by
+    # chunk: batches of one shape, so one compiled program serves the whole of stage 1.
+    screen_data = data.subset(spread(len(data.records), settings.screening_bags))
+    screen_batch, chunks = stage1_batches(config, data, effects)
+    scales = start_scales(config.model(), noise, h, chunks)
+    n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll"
 
-    # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates.
+    # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
+    # support rigid (held) or yielding (free).
     start = Stage1(
-        jnp.zeros(len(PARAMETER_NAMES)), jnp.zeros(len(Q_NAMES)), apply_scales(effects, scales, inverse=True)
+        jnp.zeros(len(PARAMETER_NAMES)),
+        jnp.zeros(len(Q_NAMES)),
+        apply_scales(effects, scales, inverse=True),
+        jnp.asarray(RIGID_LOG_SUPPORT),
     )
-    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q))
+    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
@@ -137,18 +151,18 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, x[-2:]))
         return text
 
-    def problem(law: ContactLaw, records: Batch, coordinates: Coordinates = coordinates):
-        """(guess, objective of the free coordinates on `records`, their start) for one contact law."""
+    def problem(law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates):
+        """(guess, objective of the free coordinates on the chunks `records`, their start) for one contact law."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log, base = jnp.asarray(log_nominal(guess)), law_model(law)
         objective = coordinates.objective(
-            lambda theta: stage1_value_and_grad(
+            lambda theta: stage1_value_and_grad_over(
+                records,
                 theta,
                 guess_log,
                 base,
                 noise,
                 scales,
-                records,
                 prior_width=settings.prior_width,
                 h=h,
                 kind=kind,
@@ -169,7 +183,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         with_support = Coordinates(
             start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True)
         )
-        objective = problem(law, records, with_support)[1]
+        objective = problem(law, (records,), with_support)[1]
         kept = {"log_f0": theta_rigid.log_f0, "log_q": theta_rigid.log_q, "effects": theta_rigid.effects}
         x0 = min(
             (with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=lambda v: objective(v)[0]
@@ -179,15 +193,13 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
 
     # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
     # a loose tolerance on a few bags; refine the one of the lowest BIC on all.
-    screen_data = data.subset(spread(len(data.records), settings.screening_bags))
-    screen_batch = batch if len(screen_data.paths) == len(data.paths) else training_batch(config, screen_data, effects)
-    if screen_batch is not batch:
+    if len(screen_data.paths) < len(data.paths):
         print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
     for law in settings.contact_laws:
-        guess, objective, x0 = problem(law, screen_batch)
+        guess, objective, x0 = problem(law, (screen_batch,))
         x, convergence = minimise(
             objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe
         )
@@ -226,7 +238,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         )
     refined = []
     for c in finalists:
-        objective = problem(c.law, batch, c.coordinates)[1]
+        objective = problem(c.law, chunks, c.coordinates)[1]
         x, convergence = minimise(
             objective, c.x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
             describe,
@@ -251,7 +263,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         for c in screened
     )
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
-    guess, objective = problem(law, batch, coordinates)[:2]
+    guess, objective = problem(law, chunks, coordinates)[:2]
     theta = coordinates.theta(x)
     curvature = hessian(objective, x)
     sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
@@ -273,16 +285,44 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
 
 
-def start_scales(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Effects:
+def stage1_batches(config: Config, data: TrainingData, effects: Effects) -> tuple[Batch, tuple[Batch, ...]]:
+    """The records stage 1 screens the contact laws on (`training.screening_bags` of them, spread over
+    the list) as one batch, and all records in chunks of its shape: one compiled program serves both."""
+    screen = data.subset(spread(len(data.records), config.training.screening_bags))
+    length = max(len(r) for r in data.records)
+    size = len(screen.records)
+    screen_batch = training_chunks(config, screen, effects, size, length)[0]
+    return screen_batch, training_chunks(config, data, effects, size, length)
+
+
+def filtered_records(
+    model: Model, noise: FilterNoise, h: float, chunks: Sequence[Batch]
+) -> tuple[np.ndarray, np.ndarray]:
+    """`filtered_states` of the records of the chunks (`training_chunks`), their padding dropped:
+    (records, L, 7) states and (records, L) normalised innovations squared."""
+    states, nis = [], []
+    for chunk in chunks:
+        held = int(np.asarray(chunk.valid).any(axis=1).sum())  # records first, padding (never valid) after
+        chunk_states, chunk_nis = jax.device_get(filtered_states(model, noise, h, chunk))
+        states.append(np.asarray(chunk_states)[:held])
+        nis.append(np.asarray(chunk_nis)[:held])
+    return np.concatenate(states), np.concatenate(nis)
+
+
+def start_scales(model: Model, noise: FilterNoise, h: float, chunks: Sequence[Batch]) -> Effects:
     """The scales of the model's effects' parameters in stage 1 (`core.calibration.data_scales`):
-    each moves its effect's force by the rotor's weight along the records' states, filtered with the
-    starting model (the guess, the effects at their starting values), where the effect acts."""
+    each moves its effect's force by the rotor's weight along the records' states (of all chunks),
+    filtered with the starting model (the guess, the effects at their starting values), where the
+    effect acts."""
     if not model.effects:
         return effect_scales(model.effects)
-    states = np.asarray(filtered_states(model, noise, h, batch)[0])
-    valid = np.asarray(batch.valid)
-    acts = np.broadcast_to(np.asarray(batch.gates)[:, None, :] > 0.5, (*valid.shape, len(model.effects)))
-    return data_scales(model, states[valid], acts[valid])
+    states, acts = [], []
+    for batch in chunks:
+        valid = np.asarray(batch.valid)
+        states.append(np.asarray(filtered_states(model, noise, h, batch)[0])[valid])
+        gates = np.broadcast_to(np.asarray(batch.gates)[:, None, :] > 0.5, (*valid.shape, len(model.effects)))
+        acts.append(gates[valid])
+    return data_scales(model, np.concatenate(states), np.concatenate(acts))
 
 
 def effect_relative_sd(sd: dict[str, float], scaled: Effects, scales: Effects) -> dict[str, float]:

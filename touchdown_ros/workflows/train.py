@@ -13,7 +13,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import minimize_scalar
 
-from touchdown_ros.workflows.calibrate import Calibration, calibrate
+from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
 from touchdown_ros.core.calibration import (
     apply_scales,
     contact_samples,
@@ -257,11 +257,11 @@ def train(
         calibrated = calibration.config
         stage1 = calibration.summary()
         if config.training.placement == "data":
-            states, _ = filtered_states(
+            states, _ = filtered_records(
                 calibrated.model(effects=calibration.effects), calibrated.noise, config.sample_period,
-                training_batch(calibrated, data, calibration.effects),
+                stage1_batches(calibrated, data, calibration.effects)[1],
             )
-            radial, axial = contact_samples(calibrated.model(), np.asarray(states)[: len(data.records)])
+            radial, axial = contact_samples(calibrated.model(), states)
             kernel, notes = kernel_from_data(calibrated.kernel, radial, axial)
             calibrated = replace(calibrated, kernel=kernel)
             for note in notes:

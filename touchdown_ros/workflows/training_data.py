@@ -76,6 +76,22 @@ def training_batch(config: Config, data: TrainingData, effects: Effects, length:
     return place(make_batch(list(data.records), np.asarray(config.noise.initial), length, gates), record_mesh())
 
 
+def training_chunks(
+    config: Config, data: TrainingData, effects: Effects, size: int, length: int | None = None
+) -> tuple[Batch, ...]:
+    """The records as batches of `size` records each (the last padded, `pad_records`) and one
+    `length`, placed like `training_batch`: one compiled program serves every chunk."""
+    length = length or max(len(r) for r in data.records)
+    chunks = []
+    for first in range(0, len(data.records), size):
+        part = data.subset(range(first, min(first + size, len(data.records))))
+        conditions = part.conditions or ({},) * len(part.records)
+        gates = [gates_for(effects, c) for c in conditions]
+        batch = make_batch(list(part.records), np.asarray(config.noise.initial), length, gates)
+        chunks.append(place(pad_records(batch, size), record_mesh()))
+    return tuple(chunks)
+
+
 def note_ungated(effects: Effects, batch: Batch, stream) -> None:
     gates = np.asarray(batch.gates)[np.asarray(batch.valid).any(axis=1)]
     for index, name in enumerate(effects.names):
