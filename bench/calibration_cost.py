@@ -5,10 +5,15 @@ defaults run once more on the cache the first filled ("warm": what a second `tra
 same shapes costs).
 
     .venv/bin/python bench/calibration_cost.py [--bags DIR] [--runs 1] [--with COMMIT_CHECKOUT]
+        [--against COMMIT_CHECKOUT] [--guess-scale 3] [--cold-only]
 
 Without `--bags` the campaign is simulated first. `--with DIR` adds, run by run in turn, the
 trainer of another checkout (e.g. `git worktree add /tmp/old <commit>`) with `--steps 40`, the
 earlier release's default, so the two are measured side by side on the same machine state.
+`--against DIR` adds that checkout's trainer with the same defaults and an empty cache of its own, run
+in turn with this one's (an A/B of two versions); `--guess-scale 3` starts from the reference
+guess's six contact constants times 3 (docs/calibration.md's campaign case); `--cold-only` runs only
+the defaults with an empty cache (and the other checkouts).
 The campaign is trained as `make demo` does: the axial loader as a conditional effect.
 """
 from __future__ import annotations
@@ -42,6 +47,9 @@ def main() -> int:
     parser.add_argument("--bags", type=Path)
     parser.add_argument("--runs", type=int, default=1)
     parser.add_argument("--with", dest="other", type=Path, help="another checkout, trained with --steps 40")
+    parser.add_argument("--against", type=Path, help="another checkout, trained with the same defaults")
+    parser.add_argument("--guess-scale", type=float, default=1.0, help="the reference contact guess times this")
+    parser.add_argument("--cold-only", action="store_true", help="only the defaults with an empty cache")
     args = parser.parse_args()
     python = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
@@ -52,7 +60,8 @@ def main() -> int:
             )
         bags = [str(b) for b in sorted(bags_dir.glob("exp_*"))]
         out = str(Path(tmp) / "c.yaml")
-        train = [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER]
+        guess = scaled_guess(args.guess_scale) if args.guess_scale != 1.0 else []
+        train = [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER, *guess]
         filled = {"cache": ""}  # the folder the last cold run of the defaults filled
 
         def with_cache(folder: str) -> dict[str, str]:
@@ -67,6 +76,13 @@ def main() -> int:
             "stage 1 + stage 2 (defaults), cold cache": cold,
             "stage 1 + stage 2 (defaults), warm cache": lambda: timed(train, env=with_cache(filled["cache"])),
         }
+        if args.cold_only:
+            cases = {"stage 1 + stage 2 (defaults), cold cache": cold}
+        if args.against is not None:
+            cases[f"{args.against}: defaults, cold cache"] = lambda: timed(
+                train, env=dict(os.environ, PYTHONPATH=str(args.against),
+                                TOUCHDOWN_XLA_CACHE=tempfile.mkdtemp(dir=tmp, prefix="cache-")),
+                cwd=str(args.against))
         if args.other is not None:
             env = dict(os.environ, PYTHONPATH=str(args.other), TOUCHDOWN_XLA_CACHE="off")
             cases[f"{args.other}: 40 steps (its default)"] = lambda: timed(
@@ -75,6 +91,14 @@ def main() -> int:
         results = in_turn(cases, args.runs)
     print_table(results, "run")
     return 0
+
+
+def scaled_guess(factor: float) -> list[str]:
+    """`-p` options setting the reference rig's six contact constants times factor."""
+    from touchdown_ros.io.config import load_config
+
+    nominal = load_config().nominal
+    return [a for k, v in nominal._asdict().items() for a in ("-p", f"contact.{k}:={v * factor:.6g}")]
 
 
 def in_turn(cases: dict, runs: int) -> dict[str, list[dict]]:
