@@ -18,7 +18,6 @@ from touchdown_ros.core.calibration import (
     apply_scales,
     contact_samples,
     effect_scales,
-    filtered_states,
     kernel_from_data,
 )
 from touchdown_ros.core.effects import Effects
@@ -290,13 +289,14 @@ def train(
         )
     final = calibrated.model(result.coeffs, result.effects)
     batch = training_batch(calibrated, data, result.effects)
-    _, nis = filtered_states(final, calibrated.noise, config.sample_period, batch)
+    chunks = stage1_batches(calibrated, data, result.effects)[1]  # stage 1's shape: its compiled filter serves
+    _, nis = filtered_records(final, calibrated.noise, config.sample_period, chunks)
     if config.training.smoothing_noise == "cross_validation":
         smoothing = choose_smoothing_scale(final, calibrated.noise, config.sample_period, batch, stream)
         calibrated = replace(calibrated, smoothing_noise_scale=smoothing.scale)
     else:
         smoothing = SmoothingScale(1.0, None, None, "likelihood: the fitted Q as it is")
-    mean_nis = tuple(float(np.nanmean(row)) for row in np.asarray(nis)[: len(data.records)])
+    mean_nis = tuple(float(np.nanmean(row)) for row in nis)
     seconds = time.perf_counter() - start
     save_coefficients(
         out,
