@@ -381,9 +381,19 @@ def place_centres(
     return np.stack([grid_d.ravel(), grid_v.ravel()], axis=1), scale
 
 
-@jax.jit
+def strongly_typed(tree):
+    """`tree` with every leaf a strongly typed array: a constant of the YAML (a Python float) and a
+    fitted value (an array) then hit the same compiled program instead of compiling it twice."""
+    return jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype=jnp.result_type(leaf)), tree)
+
+
 def filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
     """(B, L, 7) filtered states of every record and (B, L) normalised innovations squared."""
+    return _filtered_states(strongly_typed(model), strongly_typed(noise), h, batch)
+
+
+@jax.jit
+def _filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
 
     def one(etas: Array, mean: Array, cov: Array, gates: Array):
         out = ekf(model._replace(effects=model.effects.with_gates(gates)), noise, h, Belief(mean, cov), etas)
