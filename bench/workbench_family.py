@@ -147,6 +147,14 @@ def _relative_errors(fitted: Mapping[str, float], truth: Mapping[str, float]) ->
     return {k: (fitted[k] - v) / (abs(v) if abs(v) > 0.1 * scale else scale) for k, v in truth.items() if k in fitted}
 
 
+def _second(verdict: dict) -> str | None:
+    """The best candidate other than the one the verdict names (or, unexplained, the best fitted):
+    the collinearity rule may name the runner-up by criterion."""
+    names = [c["candidate"] for c in verdict["candidates"]]
+    first = verdict["best"] or (names[0] if names else None)
+    return next((n for n in names if n != first), None)
+
+
 def run_case(case: Case, out: Path) -> dict:
     """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
     true effect switched on; the figures of its row."""
@@ -206,7 +214,7 @@ def run_case(case: Case, out: Path) -> dict:
         "explained": verdict["explained"],
         "collinear": verdict["collinear"],
         "margin_to_second": verdict["margin_to_second"],
-        "second": next((c["candidate"] for c in verdict["candidates"][1:2]), None),
+        "second": _second(verdict),
         "truth": truth,
         "fitted": fitted,
         "relative_error": errors,
