@@ -49,6 +49,40 @@ def test_laws_are_screened_on_bags_spread_over_the_list():
     assert spread(7, 2) == [0, 6]
 
 
+def test_stage1_over_chunks_is_the_objective_over_all_records():
+    """Refining on all bags chunk by chunk (the screening batch's shape, one compiled program) gives
+    the value and gradient of one batch of all records, the prior counted once; the chunks' filtered
+    states are the batch's, their padding dropped."""
+    from touchdown_ros.core.calibration import (
+        RIGID_LOG_SUPPORT, Stage1, filtered_states, log_nominal, stage1_value_and_grad, stage1_value_and_grad_over,
+    )
+    from touchdown_ros.workflows.calibrate import filtered_records, stage1_batches
+    from touchdown_ros.workflows.training_data import TrainingData, record_mesh, training_batch
+
+    config = load_config(overrides={"training.screening_bags": 2})
+    rng = np.random.default_rng(3)
+    lengths = (180, 200, 170, 190, 160)  # 5 records in chunks of 2: the last one padded
+    records = tuple(np.cumsum(2e-6 * rng.standard_normal((n, 3)), axis=0) - [0, 0, 1e-5] for n in lengths)
+    data = TrainingData(tuple(f"bag_{i}" for i in range(5)), records)
+    screen, chunks = stage1_batches(config, data, config.effects)
+    assert len(chunks) == 3 and all(c.etas.shape == screen.etas.shape for c in chunks)
+    whole = training_batch(config, data, config.effects, max(lengths))
+    guess = jnp.asarray(log_nominal(config.nominal))
+    theta = Stage1(guess + 0.3, jnp.array([0.2, -0.4]), config.effects, jnp.asarray(RIGID_LOG_SUPPORT))
+    static = dict(prior_width=1.6, h=config.sample_period, kind="nll", mesh=record_mesh())
+    model, noise, scales = config.model(), config.noise, config.effects
+    value, grad = stage1_value_and_grad_over(chunks, theta, guess, model, noise, scales, **static)
+    expected, expected_grad = stage1_value_and_grad(theta, guess, model, noise, scales, whole, **static)
+    assert float(value) == pytest.approx(float(expected), rel=1e-10)
+    for got, want in ((grad.log_f0, expected_grad.log_f0), (grad.log_q, expected_grad.log_q)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-12)
+    states, nis = filtered_records(config.model(), config.noise, config.sample_period, chunks)
+    all_states, all_nis = filtered_states(config.model(), config.noise, config.sample_period, whole)
+    assert states.shape == (5, max(lengths), 7)
+    np.testing.assert_allclose(states, np.asarray(all_states)[:5], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(nis, np.asarray(all_nis)[:5], rtol=1e-9, equal_nan=True)
+
+
 def test_hertz_force_and_guess_conversion():
     law = ContactLaw.of("hertz", 1.5)
     d, rate = 30e-6, 0.05
