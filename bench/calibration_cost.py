@@ -32,13 +32,17 @@ LOADER = ["-p", "effects.active:=[axial_load]", "-p", "effects.when.axial_load:=
 
 
 def timed(command: list[str], env: dict[str, str] | None = None, cwd: str | None = None) -> dict:
-    """Wall seconds, peak RSS (MiB, GNU time's %M) and exit code of one child process."""
+    """Wall seconds, CPU seconds (user + system: less moved by other jobs on a shared machine), peak
+    RSS (MiB, GNU time's %M) and exit code of one child process."""
     start = time.perf_counter()
-    done = subprocess.run(["/usr/bin/time", "-f", "%M", *command], env=env, cwd=cwd, stdout=subprocess.DEVNULL,
-                          stderr=subprocess.PIPE, text=True)
+    done = subprocess.run(["/usr/bin/time", "-f", "%U %S %M", *command], env=env, cwd=cwd,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seconds = time.perf_counter() - start
     lines = done.stderr.strip().splitlines()
-    return {"seconds": seconds, "peak_rss_MiB": int(lines[-1]) / 1024 if lines and lines[-1].isdigit() else None,
+    fields = lines[-1].split() if lines else []
+    measured = len(fields) == 3 and fields[2].isdigit()
+    return {"seconds": seconds, "cpu_seconds": float(fields[0]) + float(fields[1]) if measured else None,
+            "peak_rss_MiB": int(fields[2]) / 1024 if measured else None,
             "exit": done.returncode, "message": lines[-2] if len(lines) > 1 else ""}
 
 
@@ -90,6 +94,14 @@ def main() -> int:
                 env=env, cwd=str(args.other))
         results = in_turn(cases, args.runs)
     print_table(results, "run")
+    if args.against is not None:
+        ours = results["stage 1 + stage 2 (defaults), cold cache"]
+        theirs = results[f"{args.against}: defaults, cold cache"]
+        for key in ("seconds", "cpu_seconds"):
+            pairs = [a[key] / b[key] for a, b in zip(ours, theirs) if a.get(key) and b.get(key)]
+            if pairs:
+                print(f"{key}: this / {args.against}, run by run {', '.join(f'{r:.2f}' for r in pairs)}; "
+                      f"median {statistics.median(pairs):.2f}")
     return 0
 
 
@@ -113,9 +125,12 @@ def in_turn(cases: dict, runs: int) -> dict[str, list[dict]]:
 
 def print_table(results: dict[str, list[dict]], title: str) -> None:
     """Markdown table: per case the median wall time, the largest peak memory and the exit codes."""
-    print(f"| {title} | wall time / s (median) | peak memory / MiB | exit |\n|---|---:|---:|---:|")
+    print(f"| {title} | wall time / s (median) | CPU time / s (median) | peak memory / MiB | exit |\n"
+          "|---|---:|---:|---:|---:|")
     for name, runs in results.items():
+        cpu = [r["cpu_seconds"] for r in runs if r.get("cpu_seconds") is not None]
         print(f"| {name} | {statistics.median(r['seconds'] for r in runs):.1f} | "
+              f"{statistics.median(cpu) if cpu else float('nan'):.1f} | "
               f"{max(r['peak_rss_MiB'] or 0 for r in runs):.0f} | {','.join(str(r['exit']) for r in runs)} |")
 
 
