@@ -7,7 +7,10 @@ guess), run `touchdown diagnose --coeffs`, and read its verdict: the candidate i
 "unexplained"), the margin to the second, the fitted parameters against the truth, and the
 held-out k-step prediction error of the baseline and with the named candidate.
 
-    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR]
+    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N]
+
+--fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 3); each call's wall
+time is kept in the row ("diagnose_seconds").
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on (`-p effects.active:=[effect]`): its fitted
@@ -155,7 +158,7 @@ def _second(verdict: dict) -> str | None:
     return next((n for n in names if n != first), None)
 
 
-def run_case(case: Case, out: Path) -> dict:
+def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
     """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
     true effect switched on; the figures of its row."""
     started = time.perf_counter()
@@ -172,11 +175,15 @@ def run_case(case: Case, out: Path) -> dict:
     # diagnose again, until it names the hidden one or says unexplained (at most MAX_ROUNDS).
     added: list[str] = []
     verdicts = []
+    diagnose_seconds = []
+    fit_option = [] if fit is None else ["--fit", str(fit)]
     for round_ in range(1, MAX_ROUNDS + 1):
         calibrated = train(out / f"calibrated_{round_}.yaml", added)
         diagnosis = out / f"diagnosis_{round_}"
+        diagnose_started = time.perf_counter()
         _run(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out",
-              str(diagnosis)], log)
+              str(diagnosis), *fit_option], log)
+        diagnose_seconds.append(round(time.perf_counter() - diagnose_started, 1))
         verdict = json.loads((diagnosis / "diagnosis.json").read_text())["models"][0]["verdict"]
         verdicts.append(verdict)
         if not verdict["explained"] or verdict["best"] == case.effect or round_ == MAX_ROUNDS:
@@ -231,6 +238,8 @@ def run_case(case: Case, out: Path) -> dict:
         "sized": bool(case.effect is None or (len(errors) == len(truth) and max(map(abs, errors.values())) <= 0.1)),
         "trained_sized": bool(case.effect is None or all(abs(e) <= 0.1 for e in trained_errors.values())),
         "halved": bool(case.effect is None or (right and min(k_step_ratio, force_ratio) <= 0.5)),
+        "fit": fit,
+        "diagnose_seconds": diagnose_seconds,
         "seconds": round(time.perf_counter() - started, 1),
     }
 
@@ -278,6 +287,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", default="", help="comma-separated case or rig names (default: all)")
     parser.add_argument("--out", type=Path, default=Path("results-workbench"))
+    parser.add_argument(
+        "--fit", type=int, default=None,
+        help="passed to every `touchdown diagnose` call: fit FROLS's best N candidates (default: diagnose's own)",
+    )
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
@@ -285,9 +298,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in chosen:
-        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}")
+        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit)
         rows.append(row)
-        print(f"{case.name} on {case.rig}: {row['verdict'][:120]} ({row['seconds']} s)", file=sys.stderr, flush=True)
+        seconds = f"{row['seconds']} s, diagnose {row['diagnose_seconds']} s"
+        print(f"{case.name} on {case.rig}: {row['verdict'][:120]} ({seconds})", file=sys.stderr, flush=True)
         (args.out / "workbench.json").write_text(json.dumps(rows, indent=1))
     text = table(rows)
     (args.out / "workbench.md").write_text(text + "\n")
