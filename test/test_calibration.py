@@ -64,7 +64,7 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     lengths = (180, 200, 170, 190, 160)  # 5 records in chunks of 2: the last one padded
     records = tuple(np.cumsum(2e-6 * rng.standard_normal((n, 3)), axis=0) - [0, 0, 1e-5] for n in lengths)
     data = TrainingData(tuple(f"bag_{i}" for i in range(5)), records)
-    screen, chunks = stage1_batches(config, data, config.effects)
+    _, screen, chunks = stage1_batches(config, data, config.effects)
     assert len(chunks) == 3 and all(c.etas.shape == screen.etas.shape for c in chunks)
     whole = training_batch(config, data, config.effects, max(lengths))
     guess = jnp.asarray(log_nominal(config.nominal))

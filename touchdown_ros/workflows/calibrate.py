@@ -122,11 +122,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
     h, kind, mesh = config.sample_period, settings.loss, record_mesh()
     effects = config.effects
-    note_ungated(effects, training_batch(config, data, effects), stream)
     # The contact laws are screened on a few records (one chunk), then refined on all of them chunk by
     # chunk: batches of one shape, so one compiled program serves the whole of stage 1.
-    screen_data = data.subset(spread(len(data.records), settings.screening_bags))
-    screen_batch, chunks = stage1_batches(config, data, effects)
+    screen_data, screen_batch, chunks = stage1_batches(config, data, effects)
+    note_ungated(effects, chunks, stream)
     scales = start_scales(config.model(), noise, h, chunks)
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll"
@@ -285,14 +284,24 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
 
 
-def stage1_batches(config: Config, data: TrainingData, effects: Effects) -> tuple[Batch, tuple[Batch, ...]]:
-    """The records stage 1 screens the contact laws on (`training.screening_bags` of them, spread over
-    the list) as one batch, and all records in chunks of its shape: one compiled program serves both."""
+class Stage1Batches(NamedTuple):
+    """The records stage 1 screens the contact laws on, as one batch, and all records in chunks of
+    its shape (one compiled program serves both)."""
+
+    screen_data: TrainingData  # `training.screening_bags` of the bags, spread over the list
+    screen: Batch
+    chunks: tuple[Batch, ...]
+
+
+def stage1_batches(config: Config, data: TrainingData, effects: Effects) -> Stage1Batches:
+    """`Stage1Batches` of the training records."""
     screen = data.subset(spread(len(data.records), config.training.screening_bags))
-    length = max(len(r) for r in data.records)
-    size = len(screen.records)
-    screen_batch = training_chunks(config, screen, effects, size, length)[0]
-    return screen_batch, training_chunks(config, data, effects, size, length)
+    length, size = max(len(r) for r in data.records), len(screen.records)
+    return Stage1Batches(
+        screen,
+        training_batch(config, screen, effects, length, size),
+        training_chunks(config, data, effects, size, length),
+    )
 
 
 def filtered_records(

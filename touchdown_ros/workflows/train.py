@@ -98,7 +98,7 @@ def fit(
     settings = config.training
     batch = hold_out(training_batch(config, data, initial.effects, length), config.held_out_block_samples(),
                      settings.held_out_every)
-    note_ungated(initial.effects, batch, stream)
+    note_ungated(initial.effects, (batch,), stream)
     objective = objective or make_objective(config, regularisation)
     theta0, unravel = ravel_pytree(Trainable(initial.coeffs, apply_scales(initial.effects, scales, inverse=True)))
     # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
@@ -258,7 +258,7 @@ def train(
         if config.training.placement == "data":
             states, _ = filtered_records(
                 calibrated.model(effects=calibration.effects), calibrated.noise, config.sample_period,
-                stage1_batches(calibrated, data, calibration.effects)[1],
+                stage1_batches(calibrated, data, calibration.effects).chunks,
             )
             radial, axial = contact_samples(calibrated.model(), states)
             kernel, notes = kernel_from_data(calibrated.kernel, radial, axial)
@@ -289,7 +289,7 @@ def train(
         )
     final = calibrated.model(result.coeffs, result.effects)
     batch = training_batch(calibrated, data, result.effects)
-    chunks = stage1_batches(calibrated, data, result.effects)[1]  # stage 1's shape: its compiled filter serves
+    chunks = stage1_batches(calibrated, data, result.effects).chunks  # stage 1's shape: its compiled filter serves
     _, nis = filtered_records(final, calibrated.noise, config.sample_period, chunks)
     if config.training.smoothing_noise == "cross_validation":
         smoothing = choose_smoothing_scale(final, calibrated.noise, config.sample_period, batch, stream)

@@ -69,31 +69,33 @@ def place(batch: Batch, mesh: Mesh | None) -> Batch:
     return jax.device_put(pad_records(batch, mesh.size), NamedSharding(mesh, P(RECORDS)))
 
 
-def training_batch(config: Config, data: TrainingData, effects: Effects, length: int | None = None) -> Batch:
-    """The records as one batch on `record_mesh()`, each with its effects' gates."""
+def training_batch(
+    config: Config, data: TrainingData, effects: Effects, length: int | None = None, size: int | None = None
+) -> Batch:
+    """The records as one batch on `record_mesh()`, each with its effects' gates; with `size`, padded
+    to that many records (`pad_records`: the copies count nowhere)."""
     conditions = data.conditions or ({},) * len(data.records)
     gates = [gates_for(effects, c) for c in conditions]
-    return place(make_batch(list(data.records), np.asarray(config.noise.initial), length, gates), record_mesh())
+    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, gates)
+    return place(batch if size is None else pad_records(batch, size), record_mesh())
 
 
 def training_chunks(
     config: Config, data: TrainingData, effects: Effects, size: int, length: int | None = None
 ) -> tuple[Batch, ...]:
-    """The records as batches of `size` records each (the last padded, `pad_records`) and one
-    `length`, placed like `training_batch`: one compiled program serves every chunk."""
+    """The records as `training_batch`es of `size` records each (the last padded) and one `length`:
+    one compiled program serves every chunk."""
     length = length or max(len(r) for r in data.records)
-    chunks = []
-    for first in range(0, len(data.records), size):
-        part = data.subset(range(first, min(first + size, len(data.records))))
-        conditions = part.conditions or ({},) * len(part.records)
-        gates = [gates_for(effects, c) for c in conditions]
-        batch = make_batch(list(part.records), np.asarray(config.noise.initial), length, gates)
-        chunks.append(place(pad_records(batch, size), record_mesh()))
-    return tuple(chunks)
+    count = len(data.records)
+    return tuple(
+        training_batch(config, data.subset(range(first, min(first + size, count))), effects, length, size)
+        for first in range(0, count, size)
+    )
 
 
-def note_ungated(effects: Effects, batch: Batch, stream) -> None:
-    gates = np.asarray(batch.gates)[np.asarray(batch.valid).any(axis=1)]
+def note_ungated(effects: Effects, batches: Sequence[Batch], stream) -> None:
+    """A note for each effect that acts in none of the records of the batches (its parameters cannot move)."""
+    gates = np.concatenate([np.asarray(b.gates)[np.asarray(b.valid).any(axis=1)] for b in batches])
     for index, name in enumerate(effects.names):
         if not gates[:, index].any():
             print(
