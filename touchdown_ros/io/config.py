@@ -68,7 +68,7 @@ class TrainingSettings:
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
-    axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the BIC falls) or not
+    axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the AIC falls) or not
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
