@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.workflows.calibrate import aic
+from touchdown_ros.workflows.calibrate import aic, damping_restart
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -118,6 +118,29 @@ def test_a_yielding_support_is_chosen_only_when_the_aic_falls():
     )
     # one-step loss (a sum of squares): N ln J
     assert aic(2.0, 0, n, "one_step") - aic(1.0, 2, n, "one_step") == pytest.approx(n * np.log(2.0) - penalty)
+
+
+def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
+    """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at
+    the rig's: the restart moves c_R up by the factor that lowers the loss most and keeps c_Z,
+    whose loss every factor raises."""
+    import io
+
+    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
+    rig_c_R = 3e13
+
+    def objective(x):
+        u = np.exp(x[1]) / rig_c_R
+        return float(0.5 * u - np.log1p(u) + 0.1 * (x[4] - 1.0) ** 2), np.zeros_like(x)
+
+    x = np.array([np.log(1.5e12), np.log(4e11), np.log(0.1), np.log(1.5e12), 1.0, np.log(0.05)])
+    log = io.StringIO()
+    restarted = damping_restart(objective, names, x, log)
+    assert restarted is not None and "c_R x100" in log.getvalue()
+    assert np.exp(restarted[1]) == pytest.approx(4e13)  # x10 and x1000 lower the loss less
+    np.testing.assert_array_equal(np.delete(restarted, 1), np.delete(x, 1))
+    assert objective(restarted)[0] < objective(x)[0]
+    assert damping_restart(objective, names, restarted, io.StringIO()) is None  # no factor lowers it there
 
 
 def test_config_reads_the_axial_support():

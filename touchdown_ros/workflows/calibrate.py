@@ -2,9 +2,10 @@
 from displacement-only bags (core.calibration), with standard errors from the loss curvature."""
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -211,6 +212,16 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
+        restart = damping_restart(objective, coordinates.names, x, stream)
+        if restart is not None:
+            x, again = minimise(
+                objective, restart, settings.calibration_steps, screen_tolerance,
+                f"calibrate {law.label}, restarted", stream, describe,
+            )
+            convergence = dataclasses.replace(
+                again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
+                seconds=convergence.seconds + again.seconds,
+            )
         if settings.axial_support != "yielding":
             screened.append(Candidate(aic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence))
         if settings.axial_support != "rigid":
@@ -392,6 +403,34 @@ def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float
     if not peak > 0.0:
         return []
     return [np.log([f * peak, g * peak]) for f in SUPPORT_START_PRELOADS for g in SUPPORT_START_SPANS]
+
+
+#: Factors on a damping constant from which stage 1 restarts when one of them lowers the loss. From
+#: a guess far below the rig's damping the damping force is negligible and the loss hardly depends
+#: on it, so its gradient cannot carry it up: on stiff_quiet c_R stopped at 1/60 of the rig's, with
+#: -2 ln L 250 above the loss at the rig's value. Above the rig's value the loss does bend, so no
+#: factors below 1.
+DAMPING_RESTART_FACTORS = (10.0, 100.0, 1000.0)
+
+
+def damping_restart(
+    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], names: Sequence[str], x: np.ndarray, stream
+) -> np.ndarray | None:
+    """x with c_R, then c_Z, multiplied by the factor of `DAMPING_RESTART_FACTORS` that lowers the
+    loss most (the free coordinates are logarithms); None if no factor lowers it."""
+    best, best_loss = x, objective(x)[0]
+    for name in ("c_R", "c_Z"):
+        if name not in names:
+            continue
+        start = best
+        for factor in DAMPING_RESTART_FACTORS:
+            trial = start.copy()
+            trial[names.index(name)] += np.log(factor)
+            loss = objective(trial)[0]
+            if loss < best_loss:
+                best, best_loss = trial, loss
+                print(f"[damping restart] {name} x{factor:g} lowers the loss to {loss:.7g}", file=stream)
+    return None if best is x else best
 
 
 def aic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
