@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.workflows.calibrate import aic, damping_restart
+from touchdown_ros.workflows.calibrate import aic, bic, damping_restart
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -118,6 +118,9 @@ def test_a_yielding_support_is_chosen_only_when_the_aic_falls():
     )
     # one-step loss (a sum of squares): N ln J
     assert aic(2.0, 0, n, "one_step") - aic(1.0, 2, n, "one_step") == pytest.approx(n * np.log(2.0) - penalty)
+    # training.search: standard keeps BIC, two more parameters cost 2 ln N
+    assert bic(3.0, 2, n, "nll") - bic(3.0, 0, n, "nll") == pytest.approx(2 * np.log(n))
+    assert bic(3.0, 2, n, "nll") - aic(3.0, 2, n, "nll") == pytest.approx(2 * np.log(n) - penalty)
 
 
 def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
@@ -273,7 +276,7 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
         for law in ("linear", "hertz n=1.5", "hertz n=1.111")
         for support in ("", " + yielding support")
     )
-    assert min(c["aic_above_best"] for c in calibration["candidates"]) == 0.0
+    assert min(c["criterion_above_best"] for c in calibration["candidates"]) == 0.0
     # the stiffness moved far from the reference guess (5e8 N/m) to what the rig is
     config = variant_config(v)
     assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)

@@ -44,6 +44,8 @@ class Topics:
 
 LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
+#: training.search: standard (the support chosen by BIC) or thorough (by AIC, with damping restarts).
+SEARCH_CHOICES = ("standard", "thorough")
 #: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding.
 SUPPORT_CHOICES = ("auto", "rigid", "yielding")
 #: training.smoothing_noise: the offline estimate's Q: cross_validation (a factor on the fitted Q, chosen
@@ -68,7 +70,8 @@ class TrainingSettings:
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
-    axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the AIC falls) or not
+    axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
+    search: str = "standard"  # stage 1: standard (BIC) | thorough (AIC, damping restarts; docs/calibration.md)
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
@@ -364,6 +367,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
         patience=read.integer("training.patience", d.patience, minimum=1),
         axial_support=read.choice("training.axial_support", d.axial_support, SUPPORT_CHOICES),
+        search=read.choice("training.search", d.search, SEARCH_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
     )
 

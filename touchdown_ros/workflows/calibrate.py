@@ -55,9 +55,9 @@ from touchdown_ros.workflows.training_data import (
 
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
-#: AIC behind the best screened candidate within which a candidate is refined too before one is
+#: Criterion (AIC or BIC) behind the best screened candidate within which a candidate is refined too before one is
 #: chosen: a screening step stops once a step gains less than SCREEN_TOLERANCE of the loss, which
-#: on a few thousand samples is an AIC of about one per step, so close screened scores do not decide.
+#: on a few thousand samples is about one criterion unit per step, so close screened scores do not decide.
 FINALIST_MARGIN = 20.0
 
 
@@ -72,7 +72,7 @@ class Calibration:
     held_by_prior: tuple[str, ...]  # parameters the data hardly inform (posterior sd >= HELD_BY_PRIOR prior sd)
     correlations: tuple[tuple[str, str, float], ...]  # strongest correlations of the stage-1 estimates
     convergence: Convergence
-    candidates: tuple[dict[str, Any], ...]  # every law x support screened: label, loss, AIC above the best, steps
+    candidates: tuple[dict[str, Any], ...]  # every law x support screened: label, loss, criterion above the best, steps
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
 
     def summary(self) -> dict[str, Any]:
@@ -113,7 +113,7 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
 def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
-    guess; keep the candidate with the lowest AIC."""
+    guess; keep the candidate with the lowest information criterion (`training.search`)."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print(
@@ -122,6 +122,8 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     )
     noise = config.noise._replace(measurement=jnp.asarray(sigma**2))
     h, kind, mesh = config.sample_period, settings.loss, record_mesh()
+    thorough = settings.search == "thorough"
+    criterion = aic if thorough else bic
     effects = config.effects
     # The contact laws are screened on a few records (one chunk), then refined on all of them chunk by
     # chunk: batches of one shape, so one compiled program serves the whole of stage 1.
@@ -192,7 +194,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         return with_support, x, convergence
 
     # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
-    # a loose tolerance on a few bags; refine the one of the lowest AIC on all.
+    # a loose tolerance on a few bags; refine the one of the lowest criterion on all.
     if len(screen_data.paths) < len(data.paths):
         print(f"contact laws screened on {len(screen_data.paths)} of the {len(data.paths)} bags", file=stream)
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
@@ -212,7 +214,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        restart = damping_restart(objective, coordinates.names, x, stream)
+        restart = damping_restart(objective, coordinates.names, x, stream) if thorough else None
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, screen_tolerance,
@@ -223,71 +225,82 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 seconds=convergence.seconds + again.seconds,
             )
         if settings.axial_support != "yielding":
-            screened.append(Candidate(aic(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence))
+            screened.append(
+                Candidate(criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence)
+            )
         if settings.axial_support != "rigid":
             fitted = fit_support(
                 law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
             )
             if fitted is not None:
                 with_support, x_s, convergence_s = fitted
-                score = aic(convergence_s.final_loss, len(SUPPORT_NAMES), n_screen, kind)
+                score = criterion(convergence_s.final_loss, len(SUPPORT_NAMES), n_screen, kind)
                 screened.append(Candidate(score, law, with_support, x_s, convergence_s, yields=True))
     if not screened:
         raise TrainingError(
             f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
             "cannot be fitted; set training.axial_support: auto or rigid"
         )
-    screened.sort(key=lambda c: c.aic)
-    finalists = [c for c in screened if c.aic - screened[0].aic < FINALIST_MARGIN]
+    screened.sort(key=lambda c: c.score)
+    finalists = [c for c in screened if c.score - screened[0].score < FINALIST_MARGIN]
     # A yielding finalist is judged against its own law rigid, refined alike: the support's fit goes on
     # from the rigid screening fit's end, so on a few bags it can win by the steps the rigid one stopped
     # short of (soft_bearing: 88 ahead screened, its impacts below any knee).
     finalists += [
         c for c in screened
-        if not c.yields and c not in finalists and any(f.yields and f.law == c.law for f in finalists)
+        if thorough and not c.yields and c not in finalists and any(f.yields and f.law == c.law for f in finalists)
     ]
     if len(screened) > 1:
         print(
-            "contact laws by AIC (above the best): "
-            + ", ".join(f"{c.name} {c.aic - screened[0].aic:.4g}" for c in screened)
+            f"contact laws by {criterion.__name__.upper()} (above the best): "
+            + ", ".join(f"{c.name} {c.score - screened[0].score:.4g}" for c in screened)
             + "; refined: " + ", ".join(c.name for c in finalists),
             file=stream,
         )
     refined = []
     for c in finalists:
         x = c.x
-        if c.yields:
+        if c.yields and thorough:
             # The constants first, the support held at its screened knee: moved together, a constant
             # still far from its optimum (damping, on few bags) can carry the knee above every impact,
             # where the loss no longer depends on it and it stays.
             held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False))
-            x_held, _ = minimise(
+            x_held, held_convergence = minimise(
                 problem(c.law, chunks, held)[1], held.initial(), settings.calibration_steps, settings.tolerance,
                 f"calibrate {c.name}, refined with the support held", stream, describe,
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
         objective = problem(c.law, chunks, c.coordinates)[1]
+        x_start = x
         x, convergence = minimise(
             objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
             describe,
         )
+        stalled = convergence.steps == 0 and not convergence.converged
+        if c.yields and thorough and stalled and held_convergence.converged:
+            # No step from the held fit's end lowered the loss (the line search gave up there): that end
+            # is where the support's coordinates, free, do not move it, so it stands.
+            x, convergence = x_start, dataclasses.replace(
+                held_convergence, reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}"
+            )
         require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
-        score = aic(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
-        refined.append(c._replace(aic=score, x=x, convergence=convergence))
-    refined.sort(key=lambda c: c.aic)
+        score = criterion(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
+        refined.append(c._replace(score=score, x=x, convergence=convergence))
+    refined.sort(key=lambda c: c.score)
     best = refined[0]
     if len(refined) > 1:
         print(
-            "refined by AIC (above the best): " + ", ".join(f"{c.name} {c.aic - best.aic:.4g}" for c in refined)
+            f"refined by {criterion.__name__.upper()} (above the best): "
+            + ", ".join(f"{c.name} {c.score - best.score:.4g}" for c in refined)
             + f"; chosen: {best.name}",
             file=stream,
         )
     finals = {c.name: c for c in refined}
     candidates = tuple(
-        {"law": c.name, "loss": c.convergence.final_loss, "aic_above_best": round(c.aic - screened[0].aic, 3),
+        {"law": c.name, "loss": c.convergence.final_loss, "criterion_above_best": round(c.score - screened[0].score, 3),
          "steps": c.convergence.steps,
          **({"refined_loss": finals[c.name].convergence.final_loss,
-             "refined_aic_above_best": round(finals[c.name].aic - best.aic, 3)} if c.name in finals else {})}
+             "refined_criterion_above_best": round(finals[c.name].score - best.score, 3)} if c.name in finals else {})}
         for c in screened
     )
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
@@ -379,7 +392,7 @@ def effect_relative_sd(sd: dict[str, float], scaled: Effects, scales: Effects) -
 class Candidate(NamedTuple):
     """One screened stage-1 fit: a contact law, rigid or with a yielding axial support."""
 
-    aic: float
+    score: float  # the information criterion (AIC or BIC, `training.search`)
     law: ContactLaw
     coordinates: Coordinates
     x: np.ndarray  # its free coordinates at the end of the screening fit
@@ -438,6 +451,12 @@ def damping_restart(
                 best, best_loss = trial, loss
                 print(f"[damping restart] {name} x{factor:g} lowers the loss to {loss:.7g}", file=stream)
     return None if best is x else best
+
+
+def bic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
+    """Bayesian information criterion of a stage-1 fit (`training.search: standard`): as `aic`
+    with the penalty k ln N."""
+    return aic(loss, 0, n_valid, kind) + extra_parameters * float(np.log(n_valid))
 
 
 def aic(loss: float, extra_parameters: int, n_valid: int, kind: str) -> float:
