@@ -24,6 +24,7 @@ import io
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -70,13 +71,10 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     }
 
 
-def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log) -> dict:
+def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "standard") -> dict:
     v = variant(name)
     config = variant_config(v)
-    if loss != config.training.loss:
-        from dataclasses import replace
-
-        config = replace(config, training=replace(config.training, loss=loss))
+    config = replace(config, training=replace(config.training, loss=loss, search=search))
     bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
     coeffs_path = out / name / f"coefficients_{loss}.yaml"
     started = time.perf_counter()
@@ -144,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train", type=int, default=3, help="bags to train on per rig")
     parser.add_argument("--test", type=int, default=2, help="held-out bags per rig")
     parser.add_argument("--loss", default="nll", choices=("nll", "one_step"))
+    parser.add_argument("--search", default="standard", choices=("standard", "thorough"), help="training.search")
     parser.add_argument("--out", type=Path, default=Path("results-family"))
     parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
     args = parser.parse_args(argv)
@@ -156,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log))
+        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search))
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
     text = table(results)
