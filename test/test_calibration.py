@@ -138,12 +138,13 @@ def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
 
     x = np.array([np.log(1.5e12), np.log(4e11), np.log(0.1), np.log(1.5e12), 1.0, np.log(0.05)])
     log = io.StringIO()
-    restarted = damping_restart(objective, names, x, log)
+    restarted = damping_restart(objective, names, x, objective(x)[0], log)
     assert restarted is not None and "c_R x100" in log.getvalue()
     assert np.exp(restarted[1]) == pytest.approx(4e13)  # x10 and x1000 lower the loss less
     np.testing.assert_array_equal(np.delete(restarted, 1), np.delete(x, 1))
     assert objective(restarted)[0] < objective(x)[0]
-    assert damping_restart(objective, names, restarted, io.StringIO()) is None  # no factor lowers it there
+    # no factor lowers the loss there
+    assert damping_restart(objective, names, restarted, objective(restarted)[0], io.StringIO()) is None
 
 
 def test_config_reads_the_axial_support():

@@ -214,7 +214,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        restart = damping_restart(objective, coordinates.names, x, stream) if thorough else None
+        restart = damping_restart(objective, coordinates.names, x, convergence.final_loss, stream) if thorough else None
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, screen_tolerance,
@@ -434,11 +434,13 @@ DAMPING_RESTART_FACTORS = (10.0, 100.0, 1000.0)
 
 
 def damping_restart(
-    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], names: Sequence[str], x: np.ndarray, stream
+    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], names: Sequence[str], x: np.ndarray, loss: float,
+    stream,
 ) -> np.ndarray | None:
-    """x with c_R, then c_Z, multiplied by the factor of `DAMPING_RESTART_FACTORS` that lowers the
-    loss most (the free coordinates are logarithms); None if no factor lowers it."""
-    best, best_loss = x, objective(x)[0]
+    """x (where the loss is `loss`) with c_R, then c_Z, multiplied by the factor of
+    `DAMPING_RESTART_FACTORS` that lowers the loss most (the free coordinates are logarithms); None
+    if no factor lowers it."""
+    best, best_loss = x, loss
     for name in ("c_R", "c_Z"):
         if name not in names:
             continue
@@ -446,10 +448,10 @@ def damping_restart(
         for factor in DAMPING_RESTART_FACTORS:
             trial = start.copy()
             trial[names.index(name)] += np.log(factor)
-            loss = objective(trial)[0]
-            if loss < best_loss:
-                best, best_loss = trial, loss
-                print(f"[damping restart] {name} x{factor:g} lowers the loss to {loss:.7g}", file=stream)
+            trial_loss = objective(trial)[0]
+            if trial_loss < best_loss:
+                best, best_loss = trial, trial_loss
+                print(f"[damping restart] {name} x{factor:g} lowers the loss to {trial_loss:.7g}", file=stream)
     return None if best is x else best
 
 
