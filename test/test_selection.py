@@ -1,12 +1,17 @@
 """Choosing candidates by what fitting them achieves (core.selection, issue #16): the pure parts."""
+import dataclasses
+import io
+
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core import selection as sel
 from touchdown_ros.core.calibration import Coordinates, Stage1, force_scaled, stage1_flags
 from touchdown_ros.core.types import PARAMETER_NAMES
 from touchdown_ros.io.config import load_config
+from touchdown_ros.workflows.optimise import minimise
 
 from conftest import library_effects
 
@@ -46,6 +51,36 @@ def test_coordinates_name_each_free_entry_in_the_flattening_order():
     only_load = Coordinates(start, stage1_flags(effects, False, fit_f0=False, fitted_effects=["axial_load"]))
     assert only_load.names == ["axial_load.force"]
     assert np.isinf(only_load.prior_sd(1.6)).all()
+
+
+def test_a_bounded_effect_parameter_stays_within_its_bounds_in_scaled_coordinates():
+    """A drag is never negative: viscous_friction's bounds, over the parameter's scale, bound the
+    coordinate, and a fit whose optimum lies below them stops at the bound (a drag of -3 N s/m
+    mimicked a cross-coupled stiffness on slippery, 2026-11-25)."""
+    effects = library_effects(["axial_load", "viscous_friction"])
+    scales = effects.with_params(({"force": 500.0}, {"c_axial": 4.0, "c_radial": 20.0}))
+    start = Stage1(jnp.zeros(6), jnp.zeros(2), effects)
+    coordinates = Coordinates(start, stage1_flags(effects, False, fit_f0=False))
+    assert coordinates.names == ["axial_load.force", "viscous_friction.c_axial", "viscous_friction.c_radial"]
+    assert coordinates.bounds(scales) == [(-np.inf, np.inf), (0.0, np.inf), (0.0, np.inf)]
+    drag = dataclasses.replace(fx.LIBRARY["viscous_friction"], bounds={"c_radial": (-1.0, 20.0)})
+    other = fx.Effects((fx.LIBRARY["axial_load"], drag))
+    other_start = Stage1(jnp.zeros(6), jnp.zeros(2), other)
+    assert Coordinates(other_start, stage1_flags(other, False, fit_f0=False)).bounds(scales) == [
+        (-np.inf, np.inf), (-np.inf, np.inf), (-1.0 / 20.0, 1.0)
+    ]
+
+    def quadratic(x):
+        target = np.array([1.0, -3.0, 0.5])
+        return float(np.sum((x - target) ** 2)), 2.0 * (x - target)
+
+    x, convergence = minimise(
+        quadratic, np.array([0.0, 1.0, 1.0]), 20, 1e-12, "bounded", io.StringIO(), bounds=coordinates.bounds(scales)
+    )
+    assert convergence.converged
+    np.testing.assert_allclose(x, [1.0, 0.0, 0.5], atol=1e-8)
+    with pytest.raises(ValueError, match="outside its bounds"):
+        dataclasses.replace(fx.LIBRARY["viscous_friction"], bounds={"c_axial": (20.0, 30.0)})
 
 
 def test_candidate_scales_move_the_force_by_the_given_size():

@@ -137,6 +137,27 @@ def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Eff
     )
 
 
+def scaled_bounds(tree, scales: Effects) -> list[tuple[float, float]]:
+    """(low, high) of every entry of ``ravel_pytree(tree)``, a tree holding scaled `Effects` (a
+    `Stage1`, stage 2's trainable): an effect parameter's `Effect.bounds` over its scale, every
+    other entry unbounded (for L-BFGS-B)."""
+
+    def side(index: int):
+        def limits(node):
+            if not isinstance(node, Effects):
+                return jnp.full(jnp.shape(node), (-jnp.inf, jnp.inf)[index])
+            params = tuple(
+                {k: e.bounds.get(k, (-np.inf, np.inf))[index] / s[k] for k in p}
+                for e, p, s in zip(node.effects, node.params, scales.params)
+            )
+            return Effects(node.effects, params, ((-np.inf, np.inf)[index],) * len(node))
+
+        limited = jax.tree_util.tree_map(limits, tree, is_leaf=lambda n: isinstance(n, Effects))
+        return np.asarray(ravel_pytree(limited)[0])
+
+    return list(zip(side(0).tolist(), side(1).tolist()))
+
+
 def stage1_model_and_noise(
     theta: Stage1, base: Model, noise: FilterNoise, scales: Effects
 ) -> tuple[Model, FilterNoise]:
@@ -259,6 +280,10 @@ class Coordinates:
             return float(value), np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)[self.free]
 
         return of_free
+
+    def bounds(self, scales: Effects) -> list[tuple[float, float]]:
+        """(low, high) of each free coordinate (`scaled_bounds`)."""
+        return [b for b, free in zip(scaled_bounds(self._unravel(self.start), scales), self.free) if free]
 
     def prior_sd(self, prior_width: float) -> np.ndarray:
         """Prior sd of each free coordinate: prior_width for ln f0, Q_PRIOR_WIDTH for ln q, none (inf) for effects."""

@@ -21,13 +21,14 @@ gain * position + offset on that axis.
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
-(default, unit, description)) and, for a measurement effect, ``kind = "measurement"``,
-or is made by the `effect` decorator below.
+(default, unit, description)), optionally ``bounds`` (name -> (low, high)) and, for a
+measurement effect, ``kind = "measurement"``, or is made by the `effect` decorator below.
 """
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import math
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import Callable, Mapping
@@ -48,7 +49,9 @@ KINDS = (FORCE, MEASUREMENT)
 @dataclass(frozen=True)
 class Effect:
     """A named term with named physical parameters (name -> (default, unit, description)): a force
-    on the rotor (N) or a change of the sensor output (m), by `kind`."""
+    on the rotor (N) or a change of the sensor output (m), by `kind`; `bounds` (name -> (low, high),
+    in the parameter's unit) keeps a fitted parameter where it means something (a drag is never
+    negative)."""
 
     name: str
     function: EffectFunction
@@ -57,20 +60,33 @@ class Effect:
     source: str = ""  # how to find it again: a library name, "module:function" or an entry point name
     when: str = ""  # the bag condition that switches it on (condition.<when> true); "" acts always
     kind: str = FORCE  # one of KINDS
+    bounds: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"effect {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        for key, (low, high) in self.bounds.items():
+            if key not in self.parameters or not low < high:
+                raise ValueError(f"effect {self.name!r}: bounds {key}: ({low}, {high}) name no parameter or are empty")
+            if not low <= self.parameters[key][0] <= high:
+                raise ValueError(f"effect {self.name!r}: the default of {key} lies outside its bounds ({low}, {high})")
 
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
 
 
-def effect(name: str, parameters: Mapping[str, tuple[float, str, str]], description: str = "", kind: str = FORCE):
+def effect(
+    name: str,
+    parameters: Mapping[str, tuple[float, str, str]],
+    description: str = "",
+    kind: str = FORCE,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+):
     """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path)."""
 
     def wrap(function: EffectFunction) -> Effect:
-        return Effect(name, function, dict(parameters), description or (function.__doc__ or ""), kind=kind)
+        text = description or (function.__doc__ or "")
+        return Effect(name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}))
 
     return wrap
 
@@ -283,6 +299,7 @@ LIBRARY: dict[str, Effect] = {
             _viscous_friction,
             {"c_radial": (10.0, "N s/m", "radial drag"), "c_axial": (10.0, "N s/m", "axial drag")},
             _viscous_friction.__doc__,
+            bounds={"c_radial": (0.0, math.inf), "c_axial": (0.0, math.inf)},
         ),
         Effect(
             "contact_angle_coupling",
@@ -336,7 +353,10 @@ def _lookup(spec: str) -> Effect:
                 raise ValueError(
                     f"effect {spec!r}: the function needs a 'parameters' attribute (name -> (default, unit, text))"
                 )
-            return Effect(attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE))
+            return Effect(
+                attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
+                bounds=dict(getattr(obj, "bounds", {})),
+            )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name == spec:

@@ -190,7 +190,10 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         x0 = min(
             (with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=lambda v: objective(v)[0]
         )
-        x, convergence = minimise(objective, x0, settings.calibration_steps, tolerance, label, stream, describe)
+        x, convergence = minimise(
+            objective, x0, settings.calibration_steps, tolerance, label, stream, describe,
+            bounds=with_support.bounds(scales),
+        )
         return with_support, x, convergence
 
     # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
@@ -203,7 +206,8 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, (screen_batch,))
         x, convergence = minimise(
-            objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe
+            objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe,
+            bounds=coordinates.bounds(scales),
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(coordinates.theta(x0), law_model(law), noise, scales)
@@ -218,7 +222,7 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, screen_tolerance,
-                f"calibrate {law.label}, restarted", stream, describe,
+                f"calibrate {law.label}, restarted", stream, describe, bounds=coordinates.bounds(scales),
             )
             convergence = dataclasses.replace(
                 again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
@@ -267,14 +271,14 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
             held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False))
             x_held, held_convergence = minimise(
                 problem(c.law, chunks, held)[1], held.initial(), settings.calibration_steps, settings.tolerance,
-                f"calibrate {c.name}, refined with the support held", stream, describe,
+                f"calibrate {c.name}, refined with the support held", stream, describe, bounds=held.bounds(scales),
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
         objective = problem(c.law, chunks, c.coordinates)[1]
         x_start = x
         x, convergence = minimise(
             objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
-            describe,
+            describe, bounds=c.coordinates.bounds(scales),
         )
         stalled = convergence.steps == 0 and not convergence.converged
         if c.yields and thorough and stalled and held_convergence.converged:

@@ -158,11 +158,23 @@ def fit_candidates(
     for chosen, effect in [(None, None), *enumerate(candidates)]:
         name = BASELINE if effect is None else effect.name
         fitted_effects = [*model.effects.names, *([effect.name] if effect else [])]
-        coordinates = Coordinates(problem.start, stage1_flags(problem.effects, True, fitted_effects=fitted_effects))
         batch = problem.gated(chosen)
+        start = problem.start
+        if effect is not None:
+            # The candidate alone first, the model held: moved together from the start, the constants'
+            # steep directions (a stiff contact's damping) set the first steps' length and the fit
+            # can stop, converged by the loss's change, before the candidate has moved.
+            alone = Coordinates(start, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[name]))
+            x, _ = minimise(
+                problem.objective(alone, batch), alone.initial(), settings.steps, settings.tolerance,
+                f"fit {name} alone", stream, bounds=alone.bounds(problem.scales),
+            )
+            start = alone.theta(x)
+        coordinates = Coordinates(start, stage1_flags(problem.effects, True, fitted_effects=fitted_effects))
         objective = problem.objective(coordinates, batch)
         x, convergence = minimise(
-            objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}", stream
+            objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}", stream,
+            bounds=coordinates.bounds(problem.scales),
         )
         theta = coordinates.theta(x)
         measures = problem.evaluate(theta, batch)
@@ -198,7 +210,8 @@ def fit_candidates(
             batch = problem.gated(chosen, record)
             objective = problem.objective(coordinates, batch)
             x, _ = minimise(
-                objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}", stream
+                objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}",
+                stream, bounds=coordinates.bounds(problem.scales),
             )
             n_fit = int(np.sum(np.asarray(batch.valid) & ~np.asarray(batch.held_out)))
             sd = _effect_sd(problem, coordinates, objective, x, n_fit, fit.name)

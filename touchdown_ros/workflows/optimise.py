@@ -75,9 +75,11 @@ def minimise(
     describe: Callable[[np.ndarray], str] = lambda theta: "",
     on_step: Callable[[int, float, np.ndarray], None] | None = None,
     patience: int = 0,
+    bounds: Sequence[tuple[float, float]] | None = None,
 ) -> tuple[np.ndarray, Convergence]:
-    """L-BFGS-B from theta0 until the loss changes by less than `tolerance` (relative) or the
-    projected gradient is below it, at most `max_steps` iterations; progress on `stream`.
+    """L-BFGS-B from theta0 (within `bounds`, (low, high) per coordinate, if given) until the loss
+    changes by less than `tolerance` (relative) or the projected gradient is below it, at most
+    `max_steps` iterations; progress on `stream`.
 
     `value_and_grad` may return a third value, a held-out loss at theta (data not in the loss).
     Then the step with the lowest held-out loss is returned (step 0, the start, included), and
@@ -133,6 +135,8 @@ def minimise(
             on_step(step, float(intermediate_result.fun), intermediate_result.x)
 
     theta0 = np.asarray(theta0, dtype=float)
+    if bounds is not None:
+        theta0 = np.clip(theta0, *np.asarray(bounds, dtype=float).T)
     initial_loss = fun(theta0)[0]
     watch(0, theta0)
     print(
@@ -149,6 +153,7 @@ def minimise(
         theta0,
         jac=True,
         method="L-BFGS-B",
+        bounds=bounds,
         callback=callback,
         options={"maxiter": max_steps, "ftol": tolerance, "gtol": tolerance, "maxls": 40},
     )

@@ -19,6 +19,7 @@ from touchdown_ros.core.calibration import (
     contact_samples,
     effect_scales,
     kernel_from_data,
+    scaled_bounds,
 )
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.smoothing import leave_one_out_error
@@ -127,6 +128,7 @@ def fit(
         describe,
         step_hook,
         settings.patience,
+        scaled_bounds(unravel(theta0), scales),
     )
     if convergence.initial_loss >= DIVERGED_LOSS:
         raise DivergedError(
