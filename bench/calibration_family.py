@@ -71,7 +71,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     }
 
 
-def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "standard") -> dict:
+def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough") -> dict:
     v = variant(name)
     config = variant_config(v)
     config = replace(config, training=replace(config.training, loss=loss, search=search))
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train", type=int, default=3, help="bags to train on per rig")
     parser.add_argument("--test", type=int, default=2, help="held-out bags per rig")
     parser.add_argument("--loss", default="nll", choices=("nll", "one_step"))
-    parser.add_argument("--search", default="standard", choices=("standard", "thorough"), help="training.search")
+    parser.add_argument("--search", default="thorough", choices=("standard", "thorough"), help="training.search")
     parser.add_argument("--out", type=Path, default=Path("results-family"))
     parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
     args = parser.parse_args(argv)

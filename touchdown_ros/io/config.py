@@ -71,7 +71,7 @@ class TrainingSettings:
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
-    search: str = "standard"  # stage 1: standard (BIC) | thorough (AIC, damping restarts; docs/calibration.md)
+    search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
