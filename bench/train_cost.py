@@ -42,7 +42,7 @@ def run_ours(bags: list[Path], steps: int) -> dict:
 
     start = time.perf_counter()
     config = load_config(overrides={"training.loss": "one_step", "training.held_out_every": 0})
-    result = fit(config, load_training_data(config, bags), config.regularisation, max_steps=steps)
+    result = fit(config, load_training_data(config, bags), min(config.regularisation), max_steps=steps)
     return {
         "seconds": time.perf_counter() - start,
         "final_loss": result.final_loss,
@@ -68,7 +68,7 @@ def run_baseline(bags: list[Path], target: float, budget: float) -> dict:
     config = load_config()
     data = load_training_data(config, bags)
     batch = make_batch(list(data.records), np.asarray(config.noise.initial))
-    model, noise, h, lam = config.model(), config.training_noise(), config.sample_period, config.regularisation
+    model, noise, h, lam = config.model(), config.training_noise(), config.sample_period, min(config.regularisation)
     count = float(np.sum(batch.valid))
     K_R, K_Z = gram(config.kernel)
     L_R, L_Z = np.linalg.cholesky(np.asarray(K_R) + 1e-10 * np.eye(len(K_R))), np.linalg.cholesky(

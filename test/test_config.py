@@ -21,6 +21,8 @@ def test_reference_rig_is_the_documented_rig():
     assert config.kernel.T_R.shape == (25, 2) and config.kernel.T_Z.shape == (25, 2)
     assert config.topics.displacement == "/amb/displacement"
     assert np.allclose(config.noise.measurement, 4e-12)
+    assert config.regularisation == (1.0, 0.1, 0.01, 0.001)
+    assert load_config(overrides={"training.regularisation": 0.02}).regularisation == (0.02,)
 
 
 def test_named_node_section_and_overrides(tmp_path):
@@ -42,6 +44,9 @@ def test_named_node_section_and_overrides(tmp_path):
         (("realtime_priority: 0 ", "realtime_priority: 100 "), "'node.realtime_priority' must be an integer in 0..99"),
         (("receive: drain ", "receive: polled "), "'node.receive' must be one of"),
         (("receive: drain ", "worker: true "), "node.worker: replaced by node.receive"),
+        (("regularisation: [1.0, ", "regularisation: [-1.0, "), "'training.regularisation' must not be negative"),
+        (("regularisation: [1.0, 1.0e-1, 1.0e-2, 1.0e-3]", "regularisation: []"), "'training.regularisation' must be a"),
+        (("regularisation: [1.0, 1.0e-1, 1.0e-2, 1.0e-3]", "regularisation: much"), "'training.regularisation' must be"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):

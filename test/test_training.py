@@ -1,13 +1,17 @@
 """Eq. 18 training: the gradient is right and fitting recovers a known model."""
+import dataclasses
+import io
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.training import loss, make_batch, prediction_errors
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
-from touchdown_ros.workflows.train import TrainingData, fit
+from touchdown_ros.workflows.train import Trainable, TrainingData, fit, fit_regularisation_path
 
 CONFIG = load_config()
 H = CONFIG.sample_period
@@ -96,6 +100,26 @@ def test_fit_recovers_the_loss_of_the_true_model():
     assert result.initial_loss > 1.05 * true_loss  # the constant model is measurably wrong here
     assert result.final_loss < true_loss + 0.05 * (result.initial_loss - true_loss)
     assert result.history == tuple(sorted(result.history, reverse=True))
+
+
+def test_lambda_is_chosen_by_the_held_out_loss():
+    """Stage 2 along lambda (training.regularisation as a list): a model with large PKBKR terms is
+    held back by a large lambda, so the held-out loss falls on at the small one, which is chosen;
+    both fits start from the same coefficients."""
+    records = records_of(true_coeffs(), count=3, samples=400)
+    data = TrainingData((), tuple(records))
+    start = Trainable(Coefficients.zeros(CONFIG.kernel), CONFIG.effects)
+    lambdas = []
+    config = dataclasses.replace(CONFIG, training=dataclasses.replace(CONFIG.training, patience=3))
+    path = fit_regularisation_path(
+        config, data, [1e-5, 1e2], start, 100, on_step=lambda lam, *_: lambdas.append(lam), stream=io.StringIO()
+    )
+    first, second = path.tried
+    assert [first["regularisation"], second["regularisation"]] == [1e2, 1e-5]
+    assert lambdas[0] == 1e2 and lambdas[-1] == 1e-5 and sorted(lambdas, reverse=True) == lambdas
+    assert second["held_out_loss_start"] == pytest.approx(first["held_out_loss_start"], rel=1e-12)
+    assert second["held_out_loss"] < first["held_out_loss"] and second["kept_step"] > 0
+    assert path.regularisation == 1e-5 and path.result.steps == second["steps"]
 
 
 def test_records_spread_over_devices_give_the_same_loss_and_gradient():

@@ -136,7 +136,7 @@ class Config:
     noise_rms: float  # m
     quantisation: float  # m
     drop: DropDetection
-    regularisation: float  # lambda
+    regularisation: tuple[float, ...]  # lambda of eq. 18; several: stage 2 chooses by its held-out loss
     topics: Topics
     training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
     smoothing_noise_scale: float = 1.0  # factor on Q of the offline estimate (a coefficient file's, `offline_noise`)
@@ -293,7 +293,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
             threshold=read.number("drop_detection.threshold", 20e-6, positive=True),
             levitated_window=read.number("drop_detection.levitated_window", 0.005, positive=True),
         ),
-        regularisation=read.number("training.regularisation", 1e-3, non_negative=True),
+        regularisation=_regularisation(read),
         training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
         law=law,
         training=_training_settings(read, law),
@@ -339,6 +339,14 @@ def _contact_law(read: ParameterReader) -> ContactLaw:
         return ContactLaw.of(name, exponent).with_support(preload, span)
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
+
+
+def _regularisation(read: ParameterReader) -> tuple[float, ...]:
+    """training.regularisation: one lambda of eq. 18, or a list stage 2 chooses from by its held-out loss."""
+    key = "training.regularisation"
+    if isinstance(read._get(key, None), list):
+        return tuple(float(v) for v in read.numbers(key, non_negative=True))
+    return (read.number(key, 1e-3, non_negative=True),)
 
 
 def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettings:

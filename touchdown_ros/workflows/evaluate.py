@@ -65,7 +65,7 @@ def cross_validate(
     warm-started from the full fit."""
     data = load_training_data(config, bags, duration)
     length = max(len(r) for r in data.records)
-    objective = make_objective(config, regularisation)
+    objective = make_objective(config)
     folds = []
     for held_out in progress(range(len(bags)), len(bags), "leave-one-out training"):
         keep = [i for i in range(len(bags)) if i != held_out]

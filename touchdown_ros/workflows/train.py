@@ -2,6 +2,7 @@
 around it (stage 2, L-BFGS on the AD gradient); the coefficient file."""
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -56,13 +57,16 @@ class Trainable(NamedTuple):
     effects: Effects
 
 
-def make_objective(config: Config, regularisation: float) -> Callable:
+def make_objective(config: Config) -> Callable:
     """Jitted ((loss, held-out loss), gradient of the loss) of eq. 18 in (coefficients, scaled effect
-    parameters), the records spread over `record_mesh()`; the batch is an argument (`place`d on that
-    mesh), so batches of one shape (e.g. cross-validation folds) share one compilation."""
+    parameters), the records spread over `record_mesh()`; the batch and lambda are arguments (the
+    batch `place`d on that mesh), so batches of one shape (e.g. cross-validation folds) and every
+    lambda share one compilation."""
     model, mesh, kind = config.model(), record_mesh(), config.training.loss
 
-    def objective(trainable: Trainable, scales: Effects, batch: Batch) -> tuple[jax.Array, jax.Array]:
+    def objective(
+        trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         effects = apply_scales(trainable.effects, scales)
         noise = config.training_noise()
         return loss_and_held_out(
@@ -100,7 +104,7 @@ def fit(
     batch = hold_out(training_batch(config, data, initial.effects, length), config.held_out_block_samples(),
                      settings.held_out_every)
     note_ungated(initial.effects, (batch,), stream)
-    objective = objective or make_objective(config, regularisation)
+    objective = objective or make_objective(config)
     theta0, unravel = ravel_pytree(Trainable(initial.coeffs, apply_scales(initial.effects, scales, inverse=True)))
     # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
     # so their gradient is zero and they never move)
@@ -110,7 +114,7 @@ def fit(
         return Trainable(scaled.coeffs, apply_scales(scaled.effects, scales))
 
     def value_and_grad(theta: np.ndarray):
-        (value, held_out), grad = objective(unravel(theta), scales, batch)
+        (value, held_out), grad = objective(unravel(theta), scales, batch, np.float64(regularisation))
         gradient = np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
         return (float(value), gradient, float(held_out)) if settings.held_out_every > 1 else (float(value), gradient)
 
@@ -146,6 +150,65 @@ def fit(
         history=convergence.history,
         convergence=convergence,
     )
+
+
+class RegularisationPath(NamedTuple):
+    """Stage 2 along lambda: the chosen fit and, per lambda tried, how it went."""
+
+    result: TrainingResult
+    regularisation: float  # the chosen lambda
+    tried: tuple[dict, ...]  # per lambda: its held-out loss at its start and kept step, steps, kept step
+
+    def as_dict(self) -> dict:
+        return {"chosen": self.regularisation, "tried": list(self.tried)}
+
+
+def fit_regularisation_path(
+    config: Config,
+    data: TrainingData,
+    regularisations: Sequence[float],
+    initial: Trainable,
+    max_steps: int,
+    on_step: Callable[[float, int, float, Trainable], None] | None = None,
+    stream=sys.stderr,
+    knob: str = "--steps N",
+) -> RegularisationPath:
+    """Stage 2 (`fit`) from `initial` at each lambda of eq. 18, the largest first, while the held-out
+    loss (at each fit's kept step) falls: the fit of the lowest. (Each from `initial`, not from the
+    fit before: from another lambda's optimum the loss changes too little for L-BFGS to go on.)
+    Each fit must converge (else the error names `knob`); `on_step(lambda, step, loss, fitted)`
+    after every step.
+    Without held-out blocks nothing can choose: the smallest lambda alone, with a note."""
+    lambdas = sorted({float(v) for v in regularisations}, reverse=True)
+    if max_steps == 0:
+        lambdas = lambdas[-1:]
+    elif len(lambdas) > 1 and config.training.held_out_every <= 1:
+        print(f"note: no held-out blocks (training.held_out_every) to choose lambda by: {lambdas[-1]:g}", file=stream)
+        lambdas = lambdas[-1:]
+    objective = make_objective(config)
+    chosen, tried = None, []
+    for lam in lambdas:
+        if len(lambdas) > 1:
+            print(f"[PKBKR] lambda {lam:g}", file=stream, flush=True)
+        hook = None if on_step is None else functools.partial(on_step, lam)
+        result = fit(config, data, lam, initial, max_steps, hook, stream, objective=objective)
+        if max_steps > 0:
+            require_convergence(result.convergence, f"stage 2 (PKBKR, lambda {lam:g})", data.paths, knob)
+        convergence = result.convergence
+        kept = convergence.kept_step if convergence is not None else None
+        held_out = convergence.held_out if kept is not None else (None,)
+        loss = held_out[kept or 0]
+        tried.append({
+            "regularisation": lam, "held_out_loss_start": held_out[0], "held_out_loss": loss,
+            "steps": result.steps, "kept_step": kept,
+        })
+        if chosen is not None and not loss < chosen[2]:
+            break
+        chosen = (result, lam, loss)
+    if len(lambdas) > 1:
+        text = ", ".join(f"{t['regularisation']:g}: {t['held_out_loss']:.7g}" for t in tried)
+        print(f"[PKBKR] held-out loss by lambda {text}; chosen {chosen[1]:g}", file=stream, flush=True)
+    return RegularisationPath(chosen[0], chosen[1], tuple(tried))
 
 
 def _merge_effects(active: Effects, started: Effects) -> Effects:
@@ -241,7 +304,7 @@ def train(
     data, fit PKBKR around the calibrated constants (stage 2, `fit`) and write the coefficient file
     (a checkpoint after every stage-2 step). With `init` or `resume`, stage 1 is taken from that file."""
     start = time.perf_counter()
-    lam = config.regularisation if regularisation is None else regularisation
+    lambdas = config.regularisation if regularisation is None else (regularisation,)
     steps = config.training.pkbkr_steps if max_steps is None else max_steps
     data = load_training_data(config, bags, duration)
     start_from = checkpoint_path(out) if resume else init
@@ -271,24 +334,21 @@ def train(
     calibrated = replace(calibrated, effects=initial.effects)
     hashes = [{"path": str(p), "sha256": sha256_of(p)} for p in data.paths]
 
-    def record(steps: int, final_loss: float | None, **extra) -> TrainingRecord:
+    def record(lam: float, steps: int, final_loss: float | None, **extra) -> TrainingRecord:
         return TrainingRecord(
             bags=hashes, regularisation=lam, final_loss=final_loss, steps=steps, extra={"calibration": stage1, **extra}
         )
 
-    def on_step(step: int, value: float, fitted: Trainable) -> None:
+    def on_step(lam: float, step: int, value: float, fitted: Trainable) -> None:
         save_coefficients(
-            checkpoint_path(out), fitted.coeffs, calibrated, record(step, value, checkpoint=True), fitted.effects
+            checkpoint_path(out), fitted.coeffs, calibrated, record(lam, step, value, checkpoint=True), fitted.effects
         )
 
-    result = fit(calibrated, data, lam, initial, steps, on_step, stream)
-    if steps > 0:
-        require_convergence(
-            result.convergence,
-            "stage 2 (PKBKR)",
-            data.paths,
-            f"--steps N (then --resume continues from {checkpoint_path(out)})",
-        )
+    path = fit_regularisation_path(
+        calibrated, data, lambdas, initial, steps, on_step, stream,
+        knob=f"--steps N (then --resume continues from {checkpoint_path(out)})",
+    )
+    result = path.result
     final = calibrated.model(result.coeffs, result.effects)
     batch = training_batch(calibrated, data, result.effects)
     chunks = stage1_batches(calibrated, data, result.effects).chunks  # stage 1's shape: its compiled filter serves
@@ -305,12 +365,14 @@ def train(
         result.coeffs,
         calibrated,
         record(
+            path.regularisation,
             result.steps,
             result.final_loss,
             initial_loss=result.initial_loss,
             seconds=round(seconds, 2),
             loss=config.training.loss,
             pkbkr=result.convergence.as_dict() if result.convergence else {},
+            regularisation_path=path.as_dict(),
             kernel_notes=notes,
             mean_nis={str(p): round(v, 3) for p, v in zip(data.paths, mean_nis)},
             smoothing_noise=smoothing.as_dict(),
