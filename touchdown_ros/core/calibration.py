@@ -145,7 +145,7 @@ def scaled_bounds(tree, scales: Effects) -> list[tuple[float, float]]:
     def side(index: int):
         def limits(node):
             if not isinstance(node, Effects):
-                return jnp.full(jnp.shape(node), (-jnp.inf, jnp.inf)[index])
+                return np.full(np.shape(node), (-np.inf, np.inf)[index])
             params = tuple(
                 {k: e.bounds.get(k, (-np.inf, np.inf))[index] / s[k] for k in p}
                 for e, p, s in zip(node.effects, node.params, scales.params)
