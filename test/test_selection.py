@@ -134,6 +134,25 @@ def test_the_best_candidate_must_beat_the_baseline_with_its_parameters_counted_a
     assert not chosen["explained"] and "free flight" in chosen["text"]
 
 
+def test_a_candidate_refused_on_held_out_samples_does_not_hide_one_that_passes():
+    """side load on stiff_quiet (2026-11-25): cross_coupled_stiffness fitted the bags best (criterion
+    -102) but raised the held-out k-step error in axial-only contact by 25 %; radial_load (-54)
+    lowered it in every phase and is the hidden effect. Without a passing one: unexplained."""
+    base = (*_errors(3.0, 9e-6), 8)
+    fitted, held = _errors(2.89, 5e-6)
+    held["axial only"] = sel.Errors(10, 2.9, np.full(3, 12e-6))
+    trading = sel.judge("trading", (fitted, held, 9), base)
+    honest = sel.judge("honest", (*_errors(2.95, 8e-6), 9), base)
+    worse = sel.judge("worse", (*_errors(3.0, 9e-6), 9), base)
+    assert trading.criterion < honest.criterion < 0 < worse.criterion
+    chosen = sel.verdict([worse, trading, honest])
+    assert chosen["explained"] and chosen["best"] == "honest" and chosen["refused"] == ["trading"]
+    assert "trading fits the bags more closely" in chosen["text"] and "axial only" in chosen["text"]
+    assert chosen["margin_to_second"] != chosen["margin_to_second"]  # nan: no second that passes
+    alone = sel.verdict([worse, trading])
+    assert not alone["explained"] and alone["best"] == "trading" and alone["refused"] == []
+
+
 def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_differ():
     base_fitted, base_held = _errors(3.0, 9e-6)
     base = (base_fitted, base_held, 8)
