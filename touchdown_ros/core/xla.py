@@ -1,6 +1,6 @@
 """XLA settings of the core, applied when `touchdown_ros.core` is imported.
 
-Both are process-wide and read once, when JAX starts its CPU backend: importing the
+All are process-wide and read once, when JAX starts its CPU backend: importing the
 core adds them to XLA_FLAGS unless an option is already there (set it yourself to
 keep XLA's default, e.g. the small-loop threshold to 1024), and has no effect if the
 process used JAX before importing the core.
@@ -17,6 +17,12 @@ splits the records of a batch over one device per usable core (`shard_map` in
 `core.training`), each filtering its share in its own loop. Everything else runs on
 the first device as before.
 
+Collective timeouts. The records' shares meet in an all-reduce; XLA aborts the process (SIGABRT)
+when a device waits there more than 40 s for the other, which a loaded machine causes: the
+campaign's `touchdown train` died so after stage 1 on 2026-11-25 with five jobs on two cores.
+The wait is only slowness (the devices are threads of this process), so the limits are raised
+to an hour (`COLLECTIVE_TIMEOUTS`).
+
 Compilation cache. The trainer's losses take 15-30 s to compile; `use_compilation_cache`
 (called by the `touchdown` command, and by the node for every program) keeps compiled programs on disk, so a
 second run of the same shapes starts at once. `TOUCHDOWN_XLA_CACHE` names the folder
@@ -30,6 +36,11 @@ import os
 SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 SMALL_LOOP_BYTES = 1 << 30
 HOST_DEVICES_OPTION = "--xla_force_host_platform_device_count"
+#: XLA's CPU collective limits (s): abort after, and warn after, this long in one all-reduce.
+COLLECTIVE_TIMEOUTS = {
+    "--xla_cpu_collective_call_terminate_timeout_seconds": 3600,
+    "--xla_cpu_collective_call_warn_stuck_timeout_seconds": 600,
+}
 
 
 def with_small_loop_flag(xla_flags: str) -> str:
@@ -50,6 +61,15 @@ def with_host_devices(xla_flags: str, count: int) -> str:
     if HOST_DEVICES_OPTION in xla_flags:
         return xla_flags
     return " ".join([*xla_flags.split(), f"{HOST_DEVICES_OPTION}={count}"])
+
+
+def with_collective_timeouts(xla_flags: str) -> str:
+    """XLA_FLAGS value with `COLLECTIVE_TIMEOUTS` added (each kept as it is if already set)."""
+    flags = xla_flags.split()
+    for option, seconds in COLLECTIVE_TIMEOUTS.items():
+        if option not in xla_flags:
+            flags.append(f"{option}={seconds}")
+    return " ".join(flags)
 
 
 def usable_cores() -> int:
@@ -88,7 +108,7 @@ def use_compilation_cache(min_compile_seconds: float = 1.0) -> str | None:
 
 
 def configure() -> None:
-    """Small-loop option and one host device per usable core in this process's XLA_FLAGS
-    (before JAX starts its backend)."""
+    """Small-loop option, one host device per usable core and the collective timeouts in this
+    process's XLA_FLAGS (before JAX starts its backend)."""
     flags = with_small_loop_flag(os.environ.get("XLA_FLAGS", ""))
-    os.environ["XLA_FLAGS"] = with_host_devices(flags, usable_cores())
+    os.environ["XLA_FLAGS"] = with_collective_timeouts(with_host_devices(flags, usable_cores()))
