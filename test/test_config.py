@@ -5,6 +5,9 @@ import pytest
 from touchdown_ros.io.config import ConfigError, load_config, reference_rig_path
 
 
+LAMBDAS = "regularisation: [1.0, 1.0e-1, 1.0e-2, 1.0e-3]"
+
+
 def write(tmp_path, text):
     path = tmp_path / "rig.yaml"
     path.write_text(text)
@@ -45,8 +48,8 @@ def test_named_node_section_and_overrides(tmp_path):
         (("receive: drain ", "receive: polled "), "'node.receive' must be one of"),
         (("receive: drain ", "worker: true "), "node.worker: replaced by node.receive"),
         (("regularisation: [1.0, ", "regularisation: [-1.0, "), "'training.regularisation' must not be negative"),
-        (("regularisation: [1.0, 1.0e-1, 1.0e-2, 1.0e-3]", "regularisation: []"), "'training.regularisation' must be a"),
-        (("regularisation: [1.0, 1.0e-1, 1.0e-2, 1.0e-3]", "regularisation: much"), "'training.regularisation' must be"),
+        ((LAMBDAS, "regularisation: []"), "'training.regularisation' must be a"),
+        ((LAMBDAS, "regularisation: much"), "'training.regularisation' must be"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):
