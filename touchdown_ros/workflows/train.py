@@ -302,7 +302,8 @@ def train(
 ) -> TrainOutcome:
     """Validate all bags, identify the rig (stage 1, `calibrate`), place the kernel centres on the
     data, fit PKBKR around the calibrated constants (stage 2, `fit`) and write the coefficient file
-    (a checkpoint after every stage-2 step). With `init` or `resume`, stage 1 is taken from that file."""
+    (a checkpoint after every stage-2 step). With `init` or `resume`, stage 1 is taken from that file
+    and the lambda path (`fit_regularisation_path`) starts from its coefficients."""
     start = time.perf_counter()
     lambdas = config.regularisation if regularisation is None else (regularisation,)
     steps = config.training.pkbkr_steps if max_steps is None else max_steps
