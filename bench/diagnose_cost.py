@@ -1,6 +1,7 @@
 """Wall time of `touchdown diagnose` on two 0.15 s drops (Table 1's experiments 9 and 11, the axial
 loader on) from their stage-1 calibration, compilation included, each run in its own process:
-with the candidates fitted (the default, --fit 3) and the FROLS pass alone (--fit 0), from an empty
+with the candidates fitted (the default, --fit 10; and 3, the default before 2026-11-25) and the FROLS
+pass alone (--fit 0), from an empty
 compilation cache and once more on the cache the first run filled.
 
     .venv/bin/python bench/diagnose_cost.py [--runs 1]
@@ -42,7 +43,7 @@ def main() -> int:
             )
 
         cases = {}
-        for fit in (3, 0):
+        for fit in (10, 3, 0):
             cache = str(Path(tmp) / f"cache_{fit}")
             cases[f"--fit {fit}, empty compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, _emptied(cache))
             cases[f"--fit {fit}, warm compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, cache)

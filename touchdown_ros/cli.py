@@ -294,9 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="ERR %% below which the missing force is 'unexplained' (default 50)",
     )
     p.add_argument(
-        "--fit", type=int, default=3,
+        "--fit", type=int, default=10,
         help="fit FROLS's best N candidates with the model's constants and judge them on held-out samples "
-        "(default 3; 0: the FROLS ranking alone decides)",
+        "(default 10; 0: the FROLS ranking alone decides)",
     )
     p.set_defaults(run=cmd_diagnose)
 
