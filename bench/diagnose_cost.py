@@ -1,8 +1,8 @@
 """Wall time of `touchdown diagnose` on two 0.15 s drops (Table 1's experiments 9 and 11, the axial
 loader on) from their stage-1 calibration, compilation included, each run in its own process:
-with the candidates fitted (the default, --fit 10; and 3, the default before 2026-11-25) and the FROLS
-pass alone (--fit 0), from an empty
-compilation cache and once more on the cache the first run filled.
+with the candidates fitted (the default, --fit 10; and 3, the default before 2026-11-25) and the
+FROLS pass alone (--fit 0), from an empty compilation cache and once more on the cache the first
+run filled.
 
     .venv/bin/python bench/diagnose_cost.py [--runs 1]
 
