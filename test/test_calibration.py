@@ -2,6 +2,7 @@
 nobody tuned the estimator to: two rigs of the simulated family, displacement-only bags."""
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -81,6 +82,39 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     assert states.shape == (5, max(lengths), 7)
     np.testing.assert_allclose(states, np.asarray(all_states)[:5], rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(nis, np.asarray(all_nis)[:5], rtol=1e-9, equal_nan=True)
+
+
+def test_stage1_over_chunks_runs_one_chunk_at_a_time(monkeypatch):
+    """Each chunk's program has finished before the next is dispatched and the sums are the host's:
+    with the chunks' programs and the device sums of their results in flight together, the all-reduce
+    deadlocked (the campaign's refinement hung at no CPU about once in 75 steps, core.xla)."""
+    from touchdown_ros.core import calibration
+    from touchdown_ros.core.calibration import RIGID_LOG_SUPPORT, Stage1, log_nominal, stage1_value_and_grad_over
+    from touchdown_ros.workflows.calibrate import stage1_batches
+    from touchdown_ros.workflows.training_data import TrainingData, record_mesh
+
+    config = load_config(overrides={"training.screening_bags": 2})
+    rng = np.random.default_rng(4)
+    records = tuple(np.cumsum(2e-6 * rng.standard_normal((3000, 3)), axis=0) - [0, 0, 1e-5] for _ in range(6))
+    _, _, chunks = stage1_batches(config, TrainingData(tuple(f"bag_{i}" for i in range(6)), records), config.effects)
+    real, in_flight, ready = calibration.stage1_value_and_grad, [], []
+
+    def spy(*args, **kwargs):
+        if in_flight:
+            ready.append(all(leaf.is_ready() for leaf in jax.tree.leaves(in_flight)))
+        in_flight[:] = [real(*args, **kwargs)]
+        return in_flight[0]
+
+    monkeypatch.setattr(calibration, "stage1_value_and_grad", spy)
+    guess = jnp.asarray(log_nominal(config.nominal))
+    theta = Stage1(guess, jnp.zeros(2), config.effects, jnp.asarray(RIGID_LOG_SUPPORT))
+    static = dict(prior_width=1.6, h=config.sample_period, kind="nll", mesh=record_mesh())
+    arguments = (chunks, theta, guess, config.model(), config.noise, config.effects)
+    stage1_value_and_grad_over(*arguments, **static)  # compiles
+    ready.clear(), in_flight.clear()
+    value, grad = stage1_value_and_grad_over(*arguments, **static)
+    assert np.isfinite(value) and len(ready) == len(chunks) - 1 and all(ready)
+    assert isinstance(value, float) and all(isinstance(leaf, np.ndarray) for leaf in jax.tree.leaves(grad))
 
 
 def test_hertz_force_and_guess_conversion():

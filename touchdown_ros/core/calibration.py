@@ -221,21 +221,22 @@ def stage1_value_and_grad(
 def stage1_value_and_grad_over(
     chunks: Sequence[Batch], theta: Stage1, guess_log_f0: Array, base: Model, noise: FilterNoise, scales: Effects,
     **static,
-) -> tuple[Array, Stage1]:
+) -> tuple[float, Stage1]:
     """`stage1_value_and_grad` of the records of all `chunks` (batches of one shape, so one program
     serves them all, e.g. the few records the contact laws are screened on and, chunk by chunk, all
-    of them): the chunks' J weighted by their valid samples, the prior counted once."""
-    counts = [jnp.sum(chunk.valid) for chunk in chunks]
-    total = sum(counts)
+    of them): the chunks' J weighted by their valid samples, the prior counted once; on the host.
+    One chunk at a time, nothing else on the devices between them: with the chunks' programs and
+    the sums of their results in flight together, the all-reduce deadlocked (`core.xla`)."""
+    counts = np.array([np.sum(np.asarray(chunk.valid)) for chunk in chunks], dtype=float)
+    shares = counts / counts.sum()
     value, grad = 0.0, None
-    for chunk, count in zip(chunks, counts):
-        v, g = stage1_value_and_grad(
+    for chunk, share in zip(chunks, shares):
+        v, g = jax.device_get(stage1_value_and_grad(
             theta, guess_log_f0, base, noise, scales, chunk, prior_weight=1.0 / len(chunks), **static
-        )
-        share = count / total
-        value = value + share * v
-        scaled = jax.tree.map(lambda leaf: share * leaf, g)
-        grad = scaled if grad is None else jax.tree.map(jnp.add, grad, scaled)
+        ))
+        value += share * float(v)
+        scaled = jax.tree.map(lambda leaf: share * np.asarray(leaf, dtype=float), g)
+        grad = scaled if grad is None else jax.tree.map(np.add, grad, scaled)
     return value, grad
 
 

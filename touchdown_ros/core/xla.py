@@ -18,10 +18,14 @@ splits the records of a batch over one device per usable core (`shard_map` in
 the first device as before.
 
 Collective timeouts. The records' shares meet in an all-reduce; XLA aborts the process (SIGABRT)
-when a device waits there more than 40 s for the other, which a loaded machine causes: the
-campaign's `touchdown train` died so after stage 1 on 2026-11-25 with five jobs on two cores.
-The wait is only slowness (the devices are threads of this process), so the limits are raised
-to an hour (`COLLECTIVE_TIMEOUTS`).
+when a device waits there more than 40 s for the other. The campaign's `touchdown train` died so
+on 2026-11-25 and, with the limit raised, hung at no CPU on a quiet machine: a deadlock, not
+slowness. Stage 1 had dispatched the programs of all its record chunks at once (JAX dispatches
+asynchronously), and two multi-device programs in flight can each hold a device's thread while
+waiting in the all-reduce for the other's (seen in about 1 of 75 steps of the campaign's
+refinement). `core.calibration.stage1_value_and_grad_over` now waits for each chunk before it
+starts the next. The limits stay raised (`COLLECTIVE_TIMEOUTS`: a warning after 60 s, the abort
+after 10 min) so that a loaded machine's slow thread is not mistaken for one.
 
 Compilation cache. The trainer's losses take 15-30 s to compile; `use_compilation_cache`
 (called by the `touchdown` command, and by the node for every program) keeps compiled programs on disk, so a
@@ -38,8 +42,8 @@ SMALL_LOOP_BYTES = 1 << 30
 HOST_DEVICES_OPTION = "--xla_force_host_platform_device_count"
 #: XLA's CPU collective limits (s): abort after, and warn after, this long in one all-reduce.
 COLLECTIVE_TIMEOUTS = {
-    "--xla_cpu_collective_call_terminate_timeout_seconds": 3600,
-    "--xla_cpu_collective_call_warn_stuck_timeout_seconds": 600,
+    "--xla_cpu_collective_call_terminate_timeout_seconds": 600,
+    "--xla_cpu_collective_call_warn_stuck_timeout_seconds": 60,
 }
 
 

@@ -247,12 +247,22 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         )
     screened.sort(key=lambda c: c.score)
     finalists = [c for c in screened if c.score - screened[0].score < FINALIST_MARGIN]
-    # A yielding finalist is judged against its own law rigid, refined alike: the support's fit goes on
-    # from the rigid screening fit's end, so on a few bags it can win by the steps the rigid one stopped
-    # short of (soft_bearing: 88 ahead screened, its impacts below any knee).
+
+    def support_acts(c: Candidate) -> bool:
+        """Whether the yielding candidate's own fit, its support made rigid, falls more than
+        FINALIST_MARGIN behind it on the screening bags: its knee lies within their forces."""
+        theta = c.coordinates.theta(c.x)._replace(log_support=jnp.asarray(RIGID_LOG_SUPPORT))
+        rigid_loss = problem(c.law, (screen_batch,))[1](coordinates.initial(**theta._asdict()))[0]
+        return criterion(rigid_loss, 0, n_screen, kind) - c.score > FINALIST_MARGIN
+
+    # A yielding finalist whose support does not act on the screening bags is judged against its own
+    # law rigid, refined alike: the support's fit goes on from the rigid screening fit's end, so on a
+    # few bags it can win by the steps the rigid one stopped short of (soft_bearing: 88 ahead
+    # screened, its impacts below any knee). Where the support acts, the rigid law is not refined.
     finalists += [
         c for c in screened
-        if thorough and not c.yields and c not in finalists and any(f.yields and f.law == c.law for f in finalists)
+        if thorough and not c.yields and c not in finalists
+        and any(f.yields and f.law == c.law and not support_acts(f) for f in finalists)
     ]
     if len(screened) > 1:
         print(
