@@ -226,14 +226,15 @@ def stage1_value_and_grad_over(
     serves them all, e.g. the few records the contact laws are screened on and, chunk by chunk, all
     of them): the chunks' J weighted by their valid samples, the prior counted once; on the host.
     One chunk at a time, nothing else on the devices between them: with the chunks' programs and
-    the sums of their results in flight together, the all-reduce deadlocked (`core.xla`)."""
+    the sums of their results in flight together, the all-reduce deadlocked (`core.xla`). Each
+    chunk is waited for on every device: fetching its result reads the first device's copy only."""
     counts = np.array([np.sum(np.asarray(chunk.valid)) for chunk in chunks], dtype=float)
     shares = counts / counts.sum()
     value, grad = 0.0, None
     for chunk, share in zip(chunks, shares):
-        v, g = jax.device_get(stage1_value_and_grad(
+        v, g = jax.device_get(jax.block_until_ready(stage1_value_and_grad(
             theta, guess_log_f0, base, noise, scales, chunk, prior_weight=1.0 / len(chunks), **static
-        ))
+        )))
         value += share * float(v)
         scaled = jax.tree.map(lambda leaf: share * np.asarray(leaf, dtype=float), g)
         grad = scaled if grad is None else jax.tree.map(np.add, grad, scaled)
