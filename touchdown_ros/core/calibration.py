@@ -29,7 +29,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh
 
 from touchdown_ros.core.diagnostics.breakdown import deformations
-from touchdown_ros.core.diagnostics.regressors import effect_regressors
+from touchdown_ros.core.diagnostics.regressors import library_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.training import Batch, output_error
@@ -105,13 +105,16 @@ def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Mo
     moves the model alike, whatever its unit (a stiffness in N/m, a load in N, a drag in N s/m
     started at 10 for 3000); a parameter that moves no force there keeps its scale."""
     values = dict(zip(model.effects.names, model.effects.params))
+    named = {e.name: e for e in scales.effects if e.name in names}
+    at = {n: {k: float(v) for k, v in values[n].items()} for n in named if n in values}
+    # One compiled program for all of them: run eagerly, op by op, the Jacobians cost 4x as much.
+    regressors = jax.jit(lambda along: library_regressors(named, along, model, at))(jnp.asarray(states))
     params = []
     for e, p in zip(scales.effects, scales.params):
-        if e.name not in names:
+        if e.name not in named:
             params.append(p)
             continue
-        at = {k: float(v) for k, v in values[e.name].items()} if e.name in values else None
-        jacobian = np.asarray(effect_regressors(e, states, model, at)[0])  # (N, 3, p) in parameter order
+        jacobian = np.asarray(regressors[e.name][0])  # (N, 3, p) in parameter order
         rms = np.sqrt(np.nanmean(np.sum(jacobian**2, axis=1), axis=0)) if len(jacobian) else np.zeros(len(p))
         params.append({k: float(force / r) if np.isfinite(r) and r > 0.0 else p[k] for k, r in zip(e.parameters, rms)})
     return Effects(scales.effects, tuple(params), scales.gates)
