@@ -20,12 +20,12 @@ the first device as before.
 Collective timeouts. The records' shares meet in an all-reduce; XLA aborts the process (SIGABRT)
 when a device waits there more than 40 s for the other. The campaign's `touchdown train` died so
 on 2026-11-25 and, with the limit raised, hung at no CPU on a quiet machine: a deadlock, not
-slowness. Stage 1 had dispatched the programs of all its record chunks at once (JAX dispatches
-asynchronously), and two multi-device programs in flight can each hold a device's thread while
-waiting in the all-reduce for the other's (seen in about 1 of 75 steps of the campaign's
-refinement). `core.calibration.stage1_value_and_grad_over` now waits for each chunk before it
-starts the next. The limits stay raised (`COLLECTIVE_TIMEOUTS`: a warning after 60 s, the abort
-after 10 min) so that a loaded machine's slow thread is not mistaken for one.
+slowness. Stage 1 summed its record chunks on the devices, so the chunks' programs and the sums of
+their results were in flight together (JAX dispatches asynchronously); a loop of that sum alone
+hung after 74 calls on the campaign. `core.calibration.stage1_value_and_grad_over` now waits for
+each chunk on every device and sums on the host (the loop then ran 600 calls). The limits stay
+raised (`COLLECTIVE_TIMEOUTS`: a warning after 60 s, the abort after 10 min) so that a loaded
+machine's slow thread is not mistaken for one.
 
 Compilation cache. The trainer's losses take 15-30 s to compile; `use_compilation_cache`
 (called by the `touchdown` command, and by the node for every program) keeps compiled programs on disk, so a
