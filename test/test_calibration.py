@@ -15,7 +15,7 @@ from touchdown_ros.core.calibration import (
     data_scales,
     place_centres,
     sensor_noise,
-    standard_errors,
+    information_standard_errors,
     strongest_correlations,
 )
 from touchdown_ros.core.dynamics import normal_force
@@ -82,6 +82,63 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     assert states.shape == (5, max(lengths), 7)
     np.testing.assert_allclose(states, np.asarray(all_states)[:5], rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(nis, np.asarray(all_nis)[:5], rtol=1e-9, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", ["nll", "one_step"])
+def test_stage1_information_is_the_fisher_information_of_the_innovations(kind):
+    """sum over the fitted samples of dnu^T S^-1 dnu + tr(S^-1 dS S^-1 dS) / 2 (one_step: dnu^T R^-1 dnu),
+    with the derivatives of the innovations nu and their covariance S taken here by central
+    differences of the filter, not by forward-mode AD; held-out samples are not counted."""
+    from touchdown_ros.core.calibration import (
+        RIGID_LOG_SUPPORT, Coordinates, Stage1, log_nominal, stage1_flags, stage1_information, stage1_model_and_noise,
+    )
+    from touchdown_ros.core.training import hold_out, innovations, make_batch
+    from touchdown_ros.workflows.training_data import place, record_mesh
+
+    config = load_config()
+    rng = np.random.default_rng(5)
+    records = [np.cumsum(2e-6 * rng.standard_normal((n, 3)), axis=0) - [0, 0, 1e-5] for n in (150, 130)]
+    batch = hold_out(make_batch(records, np.asarray(config.noise.initial)), 20, 3)
+    guess = jnp.asarray(log_nominal(config.nominal))
+    start = Stage1(guess + 0.2, jnp.array([0.3, -0.2]), config.effects, jnp.asarray(RIGID_LOG_SUPPORT))
+    coordinates = Coordinates(start, stage1_flags(config.effects, True, fit_support=False))
+    x = coordinates.initial()
+    model, noise, h = config.model(), config.noise, config.sample_period
+    got = np.asarray(stage1_information(start, coordinates.directions(), model, noise, config.effects, h, batch, kind))
+
+    def moments(x):
+        nu, S = innovations(*stage1_model_and_noise(coordinates.theta(x), model, noise, config.effects), h, batch)
+        return np.asarray(nu), np.asarray(S)
+
+    step = 1e-5
+    d_nu, d_S = [], []
+    for i in range(len(x)):
+        e = np.zeros_like(x)
+        e[i] = step
+        (nu_plus, S_plus), (nu_minus, S_minus) = moments(x + e), moments(x - e)
+        d_nu.append((nu_plus - nu_minus) / (2 * step))
+        d_S.append((S_plus - S_minus) / (2 * step))
+    _, S = moments(x)
+    counted = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
+    assert 0 < counted.sum() < np.asarray(batch.valid).sum()
+    p = len(x)
+    expected = np.zeros((p, p))
+    R_inverse = np.diag(1.0 / np.asarray(noise.measurement))
+    for b, k in zip(*np.nonzero(counted)):
+        S_inverse = R_inverse if kind == "one_step" else np.linalg.inv(S[b, k])
+        for i in range(p):
+            for j in range(p):
+                expected[i, j] += d_nu[i][b, k] @ S_inverse @ d_nu[j][b, k]
+                if kind == "nll":
+                    expected[i, j] += 0.5 * np.trace(S_inverse @ d_S[i][b, k] @ S_inverse @ d_S[j][b, k])
+    assert np.max(np.abs(expected)) > 1.0
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6 * np.max(np.abs(expected)))
+    mesh = record_mesh()  # the records spread over the devices: the same sums
+    spread = stage1_information(
+        start, coordinates.directions(p + 2), model, noise, config.effects, h, place(batch, mesh), kind, mesh
+    )
+    np.testing.assert_allclose(np.asarray(spread)[:p, :p], got, rtol=1e-10, atol=1e-12 * np.max(np.abs(got)))
+    assert not np.any(np.asarray(spread)[p:]) and not np.any(np.asarray(spread)[:, p:])  # padding adds nothing
 
 
 def test_stage1_over_chunks_runs_one_chunk_at_a_time(monkeypatch):
@@ -196,18 +253,14 @@ def test_config_reads_the_axial_support():
         load_config(overrides={"training.axial_support": "soft"})
 
 
-def test_standard_errors_of_a_known_quadratic():
-    """J = 2 NLL / N with NLL = x^T C^-1 x / 2, so its Hessian is 2 C^-1 / N: C comes back."""
+def test_standard_errors_of_a_known_information():
+    """The information C^-1 gives C back; a direction the data do not inform is held by its prior alone."""
     covariance = np.array([[0.04, 0.018], [0.018, 0.01]])
-    n = 1000
-    hessian = 2.0 * np.linalg.inv(covariance) / n
-    sd, correlation = standard_errors(hessian, n)
+    sd, correlation = information_standard_errors(np.linalg.inv(covariance))
     np.testing.assert_allclose(sd, [0.2, 0.1], rtol=1e-12)
     assert correlation[0, 1] == pytest.approx(0.9, rel=1e-12)
     assert strongest_correlations(["a", "b"], correlation) == [("a", "b", pytest.approx(0.9))]
-    # a flat direction the finite differences made slightly negative: the prior alone holds it
-    noisy = np.diag([2.0 / 0.04 / n, -1e-9])
-    sd, _ = standard_errors(noisy, n, prior_sd=np.array([np.inf, 1.6]))
+    sd, _ = information_standard_errors(np.diag([1.0 / 0.04, 0.0]), prior_sd=np.array([np.inf, 1.6]))
     np.testing.assert_allclose(sd, [0.2, 1.6], rtol=1e-9)
 
 

@@ -11,7 +11,8 @@ the rotor's weight rms along the data, `data_scales`; no prior), by minimising
 that is, with the `nll` loss, twice the negative log-posterior per sample under a
 log-normal prior around the rig YAML's guess. The prior holds what the data cannot
 tell (damping, friction) near the guess instead of letting it wander; where the data
-speak (stiffness) it is negligible. Standard errors come from the curvature of J.
+speak (stiffness) it is negligible. Standard errors come from the curvature of J, its
+Gauss-Newton part (the Fisher information of the innovations, `stage1_information`).
 
 Also here: the sensor noise from the levitated samples, carrying a guess from one
 contact law to another, and kernel centres placed where the data are.
@@ -27,12 +28,13 @@ import numpy as np
 from jax import Array
 from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 
 from touchdown_ros.core.diagnostics.breakdown import deformations
 from touchdown_ros.core.diagnostics.regressors import library_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
-from touchdown_ros.core.training import Batch, output_error
+from touchdown_ros.core.training import RECORDS, Batch, innovations, output_error
 from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Kernel, Model, Nominal
 
 #: Which Q entries each noise factor scales: radial (x, y, xdot, ydot) and axial (z, zdot); theta stays.
@@ -275,6 +277,14 @@ class Coordinates:
         full[self.free] = x
         return self._unravel(full)
 
+    def directions(self, count: int | None = None) -> Stage1:
+        """One unit step along each free coordinate: a `Stage1` whose leaves have a leading axis of
+        that many (the tangents of `stage1_information`), padded with zero steps to `count` (so fits
+        with different free coordinates share one compiled program)."""
+        steps = np.eye(len(self.start))[self.free]
+        padding = np.zeros((max(0, (count or 0) - len(steps)), len(self.start)))
+        return jax.vmap(self._unravel)(jnp.asarray(np.concatenate([steps, padding])))
+
     def objective(
         self, value_and_grad: Callable[[Stage1], tuple[Array, Stage1]]
     ) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
@@ -355,22 +365,61 @@ def sensor_noise(levitated: np.ndarray) -> np.ndarray:
     return sigma
 
 
-def standard_errors(
-    hessian: np.ndarray, n_valid: int, prior_sd: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior sd and correlation matrix of stage-1 coordinates from the Hessian of J.
+@functools.partial(jax.jit, static_argnames=("h", "kind", "mesh"))
+def stage1_information(
+    theta: Stage1, directions: Stage1, base: Model, noise: FilterNoise, scales: Effects, h: float, batch: Batch,
+    kind: str, mesh: Mesh | None = None,
+) -> Array:
+    """`fisher_information` of the records of `batch`; with a mesh, each device takes its share of the
+    records (`place`d on it) and the sums are added."""
+    if mesh is None:
+        return fisher_information(theta, directions, base, noise, scales, h, batch, kind)
 
-    J is twice the negative log-posterior divided by N, so the posterior precision is N H / 2:
-    the data's part plus the prior's, diag(1 / prior_sd^2) (inf: no prior). A finite-difference
-    Hessian is noisy along flat directions and may even turn negative there; the data's part of
-    the precision is kept positive semi-definite (negative eigenvalues to 0) before the prior's
-    is added back, so no direction comes out flatter than the prior says.
-    """
-    prior = np.zeros(len(hessian)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
-    precision = 0.5 * n_valid * 0.5 * (hessian + hessian.T)
-    values, vectors = np.linalg.eigh(precision - np.diag(prior))
-    data = (vectors * np.clip(values, 0.0, None)) @ vectors.T
-    covariance = np.linalg.pinv(data + np.diag(prior), hermitian=True)
+    def share(*args) -> Array:
+        return jax.lax.psum(fisher_information(*args[:5], h, args[5], kind), RECORDS)
+
+    replicated = jax.tree.map(jnp.asarray, (theta, directions, base, noise, scales))
+    return jax.shard_map(share, mesh=mesh, in_specs=(P(),) * 5 + (P(RECORDS),), out_specs=P(), check_vma=False)(
+        *replicated, batch
+    )
+
+
+def fisher_information(
+    theta: Stage1, directions: Stage1, base: Model, noise: FilterNoise, scales: Effects, h: float, batch: Batch,
+    kind: str,
+) -> Array:
+    """(p, p) Fisher information of the data along p directions of the stage-1 coordinates (`directions`:
+    a `Stage1` whose leaves have a leading axis p, `Coordinates.directions`), summed over the valid
+    samples of `batch` that are not held out: sum_k dnu_i^T S^-1 dnu_j + tr(S^-1 dS_i S^-1 dS_j) / 2,
+    with nu, S the innovations and their covariance (`nll`; `one_step`: dnu_i^T R^-1 dnu_j). That is
+    the Gauss-Newton part of N/2 times J's Hessian, positive semi-definite, from one forward pass with
+    p tangents (the derivatives by forward-mode AD through the filter)."""
+
+    def moments(t: Stage1) -> tuple[Array, Array]:
+        return innovations(*stage1_model_and_noise(t, base, noise, scales), h, batch)
+
+    (nu, S), (d_nu, d_S) = jax.vmap(lambda d: jax.jvp(moments, (theta,), (d,)), out_axes=(None, 0))(directions)
+    counted = (batch.valid & ~batch.held_out)[None, ..., None]
+    d_nu = jnp.where(counted, d_nu, 0.0)
+    if kind == "one_step":
+        return jnp.einsum("pblk,qblk->pq", d_nu / noise.measurement, d_nu)
+    S = jnp.where(counted[0, ..., None], S, jnp.eye(3))
+    S_inverse = jnp.linalg.inv(S)
+    whitened = jnp.einsum("blij,pblj->pbli", S_inverse, d_nu)
+    mean_part = jnp.einsum("pbli,qbli->pq", d_nu, whitened)
+    d_S = jnp.where(counted[..., None], d_S, 0.0)
+    spread = jnp.einsum("blij,pbljk->pblik", S_inverse, d_S)
+    return mean_part + 0.5 * jnp.einsum("pblik,qblki->pq", spread, spread)
+
+
+def information_standard_errors(
+    information: np.ndarray, prior_sd: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior sd and correlation matrix of stage-1 coordinates: the covariance is the inverse of
+    the data's information (`stage1_information`, or N H / 2 of J's data part) plus the prior's
+    precision, diag(1 / prior_sd^2) (inf: no prior)."""
+    prior = np.zeros(len(information)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
+    covariance = np.linalg.pinv(0.5 * (information + information.T) + np.diag(prior), hermitian=True)
     sd = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.outer(sd, sd)

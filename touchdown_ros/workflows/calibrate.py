@@ -27,8 +27,9 @@ from touchdown_ros.core.calibration import (
     sensor_noise,
     stage1_flags,
     stage1_model_and_noise,
+    information_standard_errors,
+    stage1_information,
     stage1_value_and_grad_over,
-    standard_errors,
     strongest_correlations,
 )
 from touchdown_ros.core.dynamics import normal_force
@@ -41,7 +42,6 @@ from touchdown_ros.workflows.optimise import (
     Convergence,
     DivergedError,
     TrainingError,
-    hessian,
     minimise,
     require_convergence,
 )
@@ -318,10 +318,16 @@ def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibrat
         for c in screened
     )
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
-    guess, objective = problem(law, chunks, coordinates)[:2]
+    guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
-    curvature = hessian(objective, x)
-    sd, correlation = standard_errors(curvature, n_valid, coordinates.prior_sd(settings.prior_width))
+    directions = coordinates.directions()
+    information = sum(  # one chunk at a time, each waited for on every device (`stage1_value_and_grad_over`)
+        np.asarray(jax.device_get(jax.block_until_ready(
+            stage1_information(theta, directions, law_model(law), noise, scales, h, chunk, kind, mesh)
+        )))
+        for chunk in chunks
+    )
+    sd, correlation = information_standard_errors(information, coordinates.prior_sd(settings.prior_width))
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)

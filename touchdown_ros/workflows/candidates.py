@@ -12,6 +12,7 @@ import numpy as np
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
+    Q_NAMES,
     Coordinates,
     Stage1,
     apply_scales,
@@ -20,8 +21,9 @@ from touchdown_ros.core.calibration import (
     log_nominal,
     stage1_flags,
     stage1_model_and_noise,
+    information_standard_errors,
+    stage1_information,
     stage1_value_and_grad,
-    standard_errors,
 )
 from touchdown_ros.core.selection import (
     BASELINE,
@@ -40,7 +42,7 @@ from touchdown_ros.core.selection import (
 from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
-from touchdown_ros.workflows.optimise import Convergence, hessian, minimise
+from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
 
@@ -103,6 +105,9 @@ class _Problem:
         self.batch = hold_out(batch, self.block, self.every)
         self.start = Stage1(self.guess, jnp.zeros(2), apply_scales(self.effects, self.scales, inverse=True))
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
+        # the most coordinates a fit frees: f0, the Q factors, the model's effects and the largest candidate
+        own = sum(len(p) for p in model.effects.params)
+        self.tangents = len(PARAMETER_NAMES) + len(Q_NAMES) + own + max([len(c.parameters) for c in candidates] or [0])
 
     def rescale(self, states: np.ndarray) -> None:
         """Scale the candidates' parameters by the force they move along these states (`force_scaled`:
@@ -129,6 +134,16 @@ class _Problem:
                 prior_width=settings.prior_width, h=self.config.sample_period, kind="nll", mesh=self.mesh,
             )
         )
+
+    def information(self, coordinates: Coordinates, x: np.ndarray, batch: Batch) -> np.ndarray:
+        """`stage1_information` of the free coordinates at x on the fitted samples of `batch` (their
+        tangents padded to the most any fit frees: one compilation for every candidate)."""
+        count = len(coordinates.names)
+        information = stage1_information(
+            coordinates.theta(x), coordinates.directions(self.tangents), self.base, self.noise, self.scales,
+            self.config.sample_period, place(batch, self.mesh), "nll", self.mesh,
+        )
+        return np.asarray(jax.device_get(jax.block_until_ready(information)))[:count, :count]
 
     def physical(self, theta: Stage1, name: str) -> dict[str, float]:
         index = self.effects.names.index(name)
@@ -185,7 +200,7 @@ def fit_candidates(
         values, sd = {}, {}
         if effect is not None:
             values = problem.physical(theta, effect.name)
-            sd = _effect_sd(problem, coordinates, objective, x, int(fitted_rows.sum()), effect.name)
+            sd = _effect_sd(problem, coordinates, x, batch, effect.name)
         fits.append(
             CandidateFit(
                 name=name,
@@ -213,19 +228,17 @@ def fit_candidates(
                 objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}",
                 stream, bounds=coordinates.bounds(problem.scales),
             )
-            n_fit = int(np.sum(np.asarray(batch.valid) & ~np.asarray(batch.held_out)))
-            sd = _effect_sd(problem, coordinates, objective, x, n_fit, fit.name)
+            sd = _effect_sd(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
 
 
-def _effect_sd(
-    problem: _Problem, coordinates: Coordinates, objective, x: np.ndarray, n_fit: int, name: str
-) -> dict[str, float]:
-    """Standard errors (physical units) of one effect's fitted parameters from the loss curvature."""
-    prior_width = problem.config.training.prior_width
-    sd, _ = standard_errors(hessian(objective, x), n_fit, coordinates.prior_sd(prior_width))
+def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str) -> dict[str, float]:
+    """Standard errors (physical units) of one effect's fitted parameters from the Fisher information
+    of the fitted samples of `batch`."""
+    information = problem.information(coordinates, x, batch)
+    sd, _ = information_standard_errors(information, coordinates.prior_sd(problem.config.training.prior_width))
     scales = problem.scales.params[problem.effects.names.index(name)]
     return {
         n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]]

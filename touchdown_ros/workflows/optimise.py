@@ -1,5 +1,4 @@
-"""Minimising a training loss: L-BFGS with progress and a record of how it stopped, and the
-curvature of a loss by differences of its gradient."""
+"""Minimising a training loss: L-BFGS with progress and a record of how it stopped."""
 from __future__ import annotations
 
 import sys
@@ -193,16 +192,3 @@ def minimise(
         flush=True,
     )
     return theta, convergence
-
-
-def hessian(
-    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], x: np.ndarray, step: float = 1e-4
-) -> np.ndarray:
-    """Hessian of a loss at x by central differences of its AD gradient (2 n gradients, no extra
-    compilation)."""
-    columns = []
-    for i in range(len(x)):
-        e = np.zeros_like(x)
-        e[i] = step
-        columns.append((objective(x + e)[1] - objective(x - e)[1]) / (2.0 * step))
-    return np.array(columns)
