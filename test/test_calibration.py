@@ -448,6 +448,26 @@ def test_training_that_cannot_converge_says_what_to_change(tmp_path, soft_rig, c
     )
 
 
+def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, capsys):
+    """Stage 2 stopped by its step cap in its second lambda: `--resume` keeps stage 1 and the finished
+    lambda (not fitted again), continues the interrupted one and cleans up beside the output."""
+    v, rig = soft_rig
+    bags = [str(b) for b in write_variant_bags(v, tmp_path / "bags", n_drops=2, seed=7)]
+    out = tmp_path / "c.yaml"
+    options = ["--config", str(rig), "-p", "training.regularisation:=[10.0,1.0e-3]", "-o", str(out)]
+    assert main(["train", *bags, *options, "--steps", "8"]) == EXIT_BAD_INPUT
+    first = capsys.readouterr().err
+    assert "stage 2 (PKBKR, lambda 0.001) did not converge in 8 steps" in first and "--resume" in first
+    assert not out.exists() and (tmp_path / "c.yaml.checkpoint").exists()
+    assert (tmp_path / "c.yaml.checkpoint.lambda-10").exists()
+    assert main(["train", *bags, *options, "--resume"]) == 0
+    second = capsys.readouterr().err
+    assert "lambda 10: fitted before the interruption" in second and "[calibrate" not in second
+    tried = yaml.safe_load(out.read_text())["training"]["regularisation_path"]["tried"]
+    assert [t["regularisation"] for t in tried] == [10.0, 1.0e-3]
+    assert sorted(p.name for p in tmp_path.glob("c.yaml*")) == ["c.yaml"]
+
+
 def test_a_guess_that_makes_the_filter_diverge_names_the_bag(tmp_path, soft_rig, capsys):
     v, rig = soft_rig
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=7)

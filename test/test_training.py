@@ -122,6 +122,37 @@ def test_lambda_is_chosen_by_the_held_out_loss():
     assert path.regularisation == 1e-5 and path.result.steps == second["steps"]
 
 
+def test_an_interrupted_lambda_path_goes_on_where_it_stopped():
+    """Resumed after its first lambda (as `train --resume` does from the checkpoint's record), the path
+    fits only the lambdas it had not finished and ends where the uninterrupted path ends."""
+    from touchdown_ros.workflows.train import PathProgress
+
+    records = records_of(true_coeffs(), count=3, samples=300)
+    data = TrainingData((), tuple(records))
+    start = Trainable(Coefficients.zeros(CONFIG.kernel), CONFIG.effects)
+    config = dataclasses.replace(CONFIG, training=dataclasses.replace(CONFIG.training, patience=3))
+    lambdas, saved = [1e2, 1e-1, 1e-5], []
+    whole = fit_regularisation_path(config, data, lambdas, start, 100, stream=io.StringIO(), on_lambda=saved.append)
+    assert [t["regularisation"] for t in whole.tried] == [1e2, 1e-1, 1e-5] and len(saved) >= 2
+    fitted = []
+    resumed = fit_regularisation_path(
+        config, data, lambdas, start, 100, on_step=lambda lam, *_: fitted.append(lam), stream=io.StringIO(),
+        progress=PathProgress(saved[0].tried, saved[0].chosen),
+    )
+    assert set(fitted) == {1e-1, 1e-5}
+    assert resumed.tried == whole.tried and resumed.regularisation == whole.regularisation
+    np.testing.assert_allclose(resumed.result.coeffs.alpha_Z, whole.result.coeffs.alpha_Z, rtol=1e-9, atol=1e-12)
+    # interrupted within lambda 0.1: it continues from where it stood, not from the start
+    middle = saved[1].chosen[0]
+    interrupted = PathProgress(saved[0].tried, saved[0].chosen, Trainable(middle.coeffs, middle.effects))
+    fitted.clear()
+    fit_regularisation_path(
+        config, data, lambdas, start, 100, on_step=lambda lam, step, value, _: fitted.append((lam, value)),
+        stream=io.StringIO(), progress=interrupted,
+    )
+    assert fitted[0][0] == 1e-1 and fitted[0][1] <= middle.final_loss + 1e-12
+
+
 def test_records_spread_over_devices_give_the_same_loss_and_gradient():
     """The trainer's sharded loss (one share of the records per XLA host device, batch padded
     with uncounted copies) equals the plain one."""

@@ -3,11 +3,12 @@ around it (stage 2, L-BFGS on the AD gradient); the coefficient file."""
 from __future__ import annotations
 
 import functools
+import glob
 import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, NamedTuple, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import jax
 import numpy as np
@@ -163,6 +164,14 @@ class RegularisationPath(NamedTuple):
         return {"chosen": self.regularisation, "tried": list(self.tried)}
 
 
+class PathProgress(NamedTuple):
+    """How far an interrupted lambda path got (`train --resume`)."""
+
+    tried: tuple[dict, ...] = ()  # the finished lambdas, as `RegularisationPath.tried`
+    chosen: tuple[TrainingResult, float, float] | None = None  # the lowest so far: (fit, lambda, held-out loss)
+    current: Trainable | None = None  # the interrupted lambda's last step, where its fit continues
+
+
 def fit_regularisation_path(
     config: Config,
     data: TrainingData,
@@ -172,12 +181,16 @@ def fit_regularisation_path(
     on_step: Callable[[float, int, float, Trainable], None] | None = None,
     stream=sys.stderr,
     knob: str = "--steps N",
+    progress: PathProgress = PathProgress(),
+    on_lambda: Callable[[PathProgress], None] | None = None,
 ) -> RegularisationPath:
     """Stage 2 (`fit`) from `initial` at each lambda of eq. 18, the largest first, while the held-out
     loss (at each fit's kept step) falls: the fit of the lowest. (Each from `initial`, not from the
     fit before: from another lambda's optimum the loss changes too little for L-BFGS to go on.)
     Each fit must converge (else the error names `knob`); `on_step(lambda, step, loss, fitted)`
-    after every step.
+    after every step, `on_lambda(progress)` after every lambda that does not end the path.
+    From `progress` (an interrupted path), its finished lambdas are not fitted again and the next one
+    continues from `progress.current`.
     Without held-out blocks nothing can choose: the smallest lambda alone, with a note."""
     lambdas = sorted({float(v) for v in regularisations}, reverse=True)
     if max_steps == 0:
@@ -186,12 +199,17 @@ def fit_regularisation_path(
         print(f"note: no held-out blocks (training.held_out_every) to choose lambda by: {lambdas[-1]:g}", file=stream)
         lambdas = lambdas[-1:]
     objective = make_objective(config)
-    chosen, tried = None, []
+    chosen, tried, current = progress.chosen, list(progress.tried), progress.current
+    done = {t["regularisation"] for t in tried}
     for lam in lambdas:
+        if lam in done:
+            print(f"[PKBKR] lambda {lam:g}: fitted before the interruption", file=stream, flush=True)
+            continue
         if len(lambdas) > 1:
             print(f"[PKBKR] lambda {lam:g}", file=stream, flush=True)
         hook = None if on_step is None else functools.partial(on_step, lam)
-        result = fit(config, data, lam, initial, max_steps, hook, stream, objective=objective)
+        start, current = (initial if current is None else current), None
+        result = fit(config, data, lam, start, max_steps, hook, stream, objective=objective)
         if max_steps > 0:
             require_convergence(result.convergence, f"stage 2 (PKBKR, lambda {lam:g})", data.paths, knob)
         convergence = result.convergence
@@ -205,6 +223,8 @@ def fit_regularisation_path(
         if chosen is not None and not loss < chosen[2]:
             break
         chosen = (result, lam, loss)
+        if on_lambda is not None:
+            on_lambda(PathProgress(tuple(tried), chosen))
     if len(lambdas) > 1:
         text = ", ".join(f"{t['regularisation']:g}: {t['held_out_loss']:.7g}" for t in tried)
         print(f"[PKBKR] held-out loss by lambda {text}; chosen {chosen[1]:g}", file=stream, flush=True)
@@ -227,6 +247,11 @@ def _merge_effects(active: Effects, started: Effects) -> Effects:
 
 def checkpoint_path(out: Path) -> Path:
     return out.with_name(out.name + ".checkpoint")
+
+
+def lambda_fit_path(out: Path, lam: float) -> Path:
+    """Where an unfinished lambda path keeps a finished lambda's fit that was the lowest when it ended."""
+    return out.with_name(f"{out.name}.checkpoint.lambda-{lam:g}")
 
 
 @dataclass(frozen=True)
@@ -302,14 +327,17 @@ def train(
 ) -> TrainOutcome:
     """Validate all bags, identify the rig (stage 1, `calibrate`), place the kernel centres on the
     data, fit PKBKR around the calibrated constants (stage 2, `fit`) and write the coefficient file
-    (a checkpoint after every stage-2 step). With `init` or `resume`, stage 1 is taken from that file
-    and the lambda path (`fit_regularisation_path`) starts from its coefficients."""
+    (a checkpoint after every stage-2 step). With `init`, stage 1 is taken from that file and the
+    lambda path (`fit_regularisation_path`) starts from its coefficients. With `resume`, stage 1 is
+    the checkpoint's and the path goes on where it stopped: the lambdas it finished are not fitted
+    again (the lowest of them was kept beside the checkpoint, `lambda_fit_path`), the interrupted
+    one continues from the checkpoint's coefficients, the later ones start from stage 1's model."""
     start = time.perf_counter()
     lambdas = config.regularisation if regularisation is None else (regularisation,)
     steps = config.training.pkbkr_steps if max_steps is None else max_steps
     data = load_training_data(config, bags, duration)
     start_from = checkpoint_path(out) if resume else init
-    calibration, notes = None, []
+    calibration, notes, progress = None, [], PathProgress()
     if start_from is not None:
         if resume and not start_from.exists():
             raise FileNotFoundError(f"{start_from}: no checkpoint to resume from")
@@ -317,6 +345,8 @@ def train(
         calibrated = loaded.config(config)
         initial = Trainable(loaded.coeffs, _merge_effects(config.effects, loaded.effects))
         stage1 = dict(loaded.training.extra.get("calibration") or {}, taken_from=str(start_from))
+        if resume and "stage2_start_effects" in loaded.training.extra:
+            initial, progress = _resumed_path(config, calibrated, out, loaded.training.extra, initial)
     else:
         calibration = calibrate(config, data, stream)
         calibrated = calibration.config
@@ -340,14 +370,29 @@ def train(
             bags=hashes, regularisation=lam, final_loss=final_loss, steps=steps, extra={"calibration": stage1, **extra}
         )
 
+    finished = {"tried": list(progress.tried), "best": _best_record(progress)}
+
     def on_step(lam: float, step: int, value: float, fitted: Trainable) -> None:
         save_coefficients(
-            checkpoint_path(out), fitted.coeffs, calibrated, record(lam, step, value, checkpoint=True), fitted.effects
+            checkpoint_path(out), fitted.coeffs, calibrated,
+            record(lam, step, value, checkpoint=True, stage2_start_effects=initial.effects.values(),
+                   regularisation_path_so_far=finished),
+            fitted.effects,
         )
+
+    def on_lambda(so_far: PathProgress) -> None:
+        fitted, lam, _ = so_far.chosen
+        if finished["best"] is None or finished["best"]["regularisation"] != lam:
+            save_coefficients(
+                lambda_fit_path(out, lam), fitted.coeffs, calibrated, record(lam, fitted.steps, fitted.final_loss),
+                fitted.effects,
+            )
+        finished.update(tried=list(so_far.tried), best=_best_record(so_far))
 
     path = fit_regularisation_path(
         calibrated, data, lambdas, initial, steps, on_step, stream,
         knob=f"--steps N (then --resume continues from {checkpoint_path(out)})",
+        progress=progress, on_lambda=on_lambda,
     )
     result = path.result
     final = calibrated.model(result.coeffs, result.effects)
@@ -381,4 +426,30 @@ def train(
         result.effects,
     )
     checkpoint_path(out).unlink(missing_ok=True)
+    for kept in out.parent.glob(glob.escape(out.name) + ".checkpoint.lambda-*"):  # `lambda_fit_path`
+        kept.unlink()
     return TrainOutcome(calibration, result, calibrated, mean_nis, seconds)
+
+
+def _best_record(progress: PathProgress) -> dict | None:
+    """The checkpoint's note of the lowest fit so far (its coefficients: `lambda_fit_path`)."""
+    if progress.chosen is None:
+        return None
+    fitted, lam, loss = progress.chosen
+    return {"regularisation": lam, "held_out_loss": loss, "steps": fitted.steps, "initial_loss": fitted.initial_loss,
+            "final_loss": fitted.final_loss}
+
+
+def _resumed_path(
+    config: Config, calibrated: Config, out: Path, extra: Mapping[str, Any], current: Trainable
+) -> tuple[Trainable, PathProgress]:
+    """(the start of the lambdas not yet begun, the interrupted path) from a checkpoint's record."""
+    start = Trainable(Coefficients.zeros(calibrated.kernel), config.effects.with_values(extra["stage2_start_effects"]))
+    so_far = extra.get("regularisation_path_so_far") or {}
+    best, chosen = so_far.get("best"), None
+    if best is not None:
+        kept = load_coefficients(lambda_fit_path(out, float(best["regularisation"])), config)
+        fitted = TrainingResult(kept.coeffs, _merge_effects(config.effects, kept.effects), best["initial_loss"],
+                                best["final_loss"], best["steps"], 0.0, ())
+        chosen = (fitted, float(best["regularisation"]), float(best["held_out_loss"]))
+    return start, PathProgress(tuple(so_far.get("tried") or ()), chosen, current)
