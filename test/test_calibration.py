@@ -460,11 +460,15 @@ def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, 
     assert "stage 2 (PKBKR, lambda 0.001) did not converge in 8 steps" in first and "--resume" in first
     assert not out.exists() and (tmp_path / "c.yaml.checkpoint").exists()
     assert (tmp_path / "c.yaml.checkpoint.lambda-10").exists()
+    checkpoint = yaml.safe_load((tmp_path / "c.yaml.checkpoint").read_text())["training"]
+    finished = checkpoint["regularisation_path_so_far"]["tried"]
+    assert [t["regularisation"] for t in finished] == [10.0]
     assert main(["train", *bags, *options, "--resume"]) == 0
-    second = capsys.readouterr().err
-    assert "lambda 10: fitted before the interruption" in second and "[calibrate" not in second
-    tried = yaml.safe_load(out.read_text())["training"]["regularisation_path"]["tried"]
+    training = yaml.safe_load(out.read_text())["training"]
+    tried = training["regularisation_path"]["tried"]
     assert [t["regularisation"] for t in tried] == [10.0, 1.0e-3]
+    assert tried[0] == finished[0]  # lambda 10 as the first run left it, not fitted again from the checkpoint
+    assert training["calibration"]["taken_from"] == str(tmp_path / "c.yaml.checkpoint")  # stage 1 not run again
     assert sorted(p.name for p in tmp_path.glob("c.yaml*")) == ["c.yaml"]
 
 
