@@ -235,3 +235,15 @@ def test_minimise_keeps_the_step_with_the_lowest_held_out_loss_and_stops_on_pati
     assert 0 < kept < convergence.steps and convergence.held_out[kept] == min(convergence.held_out)
     assert convergence.final_loss == convergence.history[kept - 1]
     assert float(np.sum((theta - target) ** 2)) == min(convergence.held_out)
+
+
+def test_progress_reaches_stderr_as_it_is_when_written(monkeypatch):
+    """The workflows' default progress stream looks sys.stderr up at each write, so a redirection made
+    after the modules were imported (a notebook, a test's capture) receives the lines."""
+    from touchdown_ros.workflows.optimise import minimise
+
+    redirected = io.StringIO()
+    monkeypatch.setattr("sys.stderr", redirected)
+    theta, convergence = minimise(lambda x: (float(x @ x), 2.0 * x), np.array([1.0, -2.0]), 20, 1e-9, "quadratic")
+    assert convergence.converged and np.allclose(theta, 0.0, atol=1e-6)
+    assert "[quadratic step 1/<=20]" in redirected.getvalue() and "[quadratic] converged" in redirected.getvalue()

@@ -3,7 +3,6 @@ from displacement-only bags (core.calibration), with standard errors from the lo
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -11,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
@@ -91,7 +91,7 @@ class Calibration:
         }
 
 
-def measured_sensor_noise(config: Config, data: TrainingData, stream=sys.stderr) -> np.ndarray:
+def measured_sensor_noise(config: Config, data: TrainingData, stream=STDERR) -> np.ndarray:
     """(3,) sensor noise sd (m) per axis, pooled over the bags' levitated samples; the YAML's
     filter.measurement_noise for an axis with too few of them (with a note)."""
     levitated = [samples for samples in data.levitated if len(samples) > 0]
@@ -110,7 +110,7 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
     return np.asarray(jax.jit(lambda b: jnp.sum(sample_errors(model, noise, h, b, kind), axis=1))(batch))
 
 
-def calibrate(config: Config, data: TrainingData, stream=sys.stderr) -> Calibration:
+def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
     guess; keep the candidate with the lowest information criterion (`training.search`)."""

@@ -2,7 +2,6 @@
 what the fit achieves on the held-out samples (core.selection); one compilation serves them all."""
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -10,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
     Q_NAMES,
@@ -160,7 +160,7 @@ def fit_candidates(
     data: TrainingData,
     names: Sequence[str],
     settings: FitSettings = FitSettings(),
-    stream=sys.stderr,
+    stream=STDERR,
 ) -> Selection:
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
     factors and the model's own effects, from the calibrated values of `config` (the coefficient

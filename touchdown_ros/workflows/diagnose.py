@@ -8,7 +8,6 @@ both and shown side by side.
 from __future__ import annotations
 
 import functools
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -17,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.diagnostics.breakdown import contact_phase, regions, windowed_rms
 from touchdown_ros.core.diagnostics.frols import RecordRegressors, Ranking, frols_verdict, rank_effects, ranking_rows
@@ -166,7 +166,7 @@ def diagnose(
     coefficient_file: Path | None = None,
     settings: Settings = Settings(),
     label: str = "model",
-    stream=sys.stderr,
+    stream=STDERR,
 ) -> Diagnosis:
     """Estimate every bag with one model and compute all the diagnostics."""
     coeffs = effects = None
@@ -257,7 +257,7 @@ def run(
     coeffs: Path | None = None,
     compare: Path | None = None,
     settings: Settings = Settings(),
-    stream=sys.stderr,
+    stream=STDERR,
 ) -> dict[str, Any]:
     """Diagnose the model of `coeffs` (default: the rig's constant model) and, with `compare`,
     a second coefficient file (after) side by side; write everything to out."""

@@ -1,7 +1,6 @@
 """Minimising a training loss: L-BFGS with progress and a record of how it stopped."""
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,6 +8,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 import scipy.optimize
+
+from touchdown_ros.workflows.progress import STDERR
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ def minimise(
     max_steps: int,
     tolerance: float,
     label: str,
-    stream=sys.stderr,
+    stream=STDERR,
     describe: Callable[[np.ndarray], str] = lambda theta: "",
     on_step: Callable[[int, float, np.ndarray], None] | None = None,
     patience: int = 0,

@@ -8,7 +8,22 @@ from typing import Iterable, Iterator, TypeVar
 T = TypeVar("T")
 
 
-def progress(items: Iterable[T], total: int, label: str, stream=sys.stderr) -> Iterator[T]:
+class _CurrentStderr:
+    """Writes to `sys.stderr` as it is at each write: a default argument `sys.stderr` would keep the
+    stream of the moment the module was imported, past a caller's later redirection."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
+#: The default progress stream of the workflows.
+STDERR = _CurrentStderr()
+
+
+def progress(items: Iterable[T], total: int, label: str, stream=STDERR) -> Iterator[T]:
     """Yield items, printing '[k/n] label: elapsed, ~left' after each one."""
     start = time.perf_counter()
     for done, item in enumerate(items, start=1):

@@ -15,6 +15,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import minimize_scalar
 
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
 from touchdown_ros.core.calibration import (
     apply_scales,
@@ -84,7 +85,7 @@ def fit(
     initial: Coefficients | Trainable | None = None,
     max_steps: int = 40,
     on_step: Callable[[int, float, Trainable], None] | None = None,
-    stream=sys.stderr,
+    stream=STDERR,
     objective: Callable | None = None,
     length: int | None = None,
     tolerance: float | None = None,
@@ -179,7 +180,7 @@ def fit_regularisation_path(
     initial: Trainable,
     max_steps: int,
     on_step: Callable[[float, int, float, Trainable], None] | None = None,
-    stream=sys.stderr,
+    stream=STDERR,
     knob: str = "--steps N",
     progress: PathProgress = PathProgress(),
     on_lambda: Callable[[PathProgress], None] | None = None,
@@ -287,7 +288,7 @@ class SmoothingScale(NamedTuple):
 
 
 def choose_smoothing_scale(
-    model: Model, noise: FilterNoise, h: float, batch: Batch, stream=sys.stderr
+    model: Model, noise: FilterNoise, h: float, batch: Batch, stream=STDERR
 ) -> SmoothingScale:
     """The factor s on Q (within SMOOTHING_SCALE_RANGE) of the lowest leave-one-out smoothing error on
     the training records (`core.smoothing`), by a bounded scalar search on ln s, with progress."""
@@ -323,7 +324,7 @@ def train(
     resume: bool = False,
     max_steps: int | None = None,
     duration: float | None = None,
-    stream=sys.stderr,
+    stream=STDERR,
 ) -> TrainOutcome:
     """Validate all bags, identify the rig (stage 1, `calibrate`), place the kernel centres on the
     data, fit PKBKR around the calibrated constants (stage 2, `fit`) and write the coefficient file
