@@ -384,6 +384,20 @@ def stage1_information(
     )
 
 
+def stage1_information_over(
+    chunks: Sequence[Batch], theta: Stage1, directions: Stage1, base: Model, noise: FilterNoise, scales: Effects,
+    h: float, kind: str, mesh: Mesh | None = None,
+) -> np.ndarray:
+    """`stage1_information` of the records of all `chunks`, summed on the host; one chunk at a time,
+    each waited for on every device (as `stage1_value_and_grad_over`, and for the same reason)."""
+    total = np.zeros((len(jax.tree_util.tree_leaves(directions)[0]),) * 2)
+    for chunk in chunks:
+        total += np.asarray(jax.device_get(jax.block_until_ready(
+            stage1_information(theta, directions, base, noise, scales, h, chunk, kind, mesh)
+        )))
+    return total
+
+
 def fisher_information(
     theta: Stage1, directions: Stage1, base: Model, noise: FilterNoise, scales: Effects, h: float, batch: Batch,
     kind: str,

@@ -10,7 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
     Q_NAMES,
@@ -25,10 +24,10 @@ from touchdown_ros.core.calibration import (
     filtered_states,
     log_nominal,
     sensor_noise,
-    stage1_flags,
-    stage1_model_and_noise,
     information_standard_errors,
-    stage1_information,
+    stage1_flags,
+    stage1_information_over,
+    stage1_model_and_noise,
     stage1_value_and_grad_over,
     strongest_correlations,
 )
@@ -45,6 +44,7 @@ from touchdown_ros.workflows.optimise import (
     minimise,
     require_convergence,
 )
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import (
     TrainingData,
     note_ungated,
@@ -320,12 +320,8 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
-    directions = coordinates.directions()
-    information = sum(  # one chunk at a time, each waited for on every device (`stage1_value_and_grad_over`)
-        np.asarray(jax.device_get(jax.block_until_ready(
-            stage1_information(theta, directions, law_model(law), noise, scales, h, chunk, kind, mesh)
-        )))
-        for chunk in chunks
+    information = stage1_information_over(
+        chunks, theta, coordinates.directions(), law_model(law), noise, scales, h, kind, mesh
     )
     sd, correlation = information_standard_errors(information, coordinates.prior_sd(settings.prior_width))
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}

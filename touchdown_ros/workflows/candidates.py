@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
     Q_NAMES,
@@ -18,11 +17,11 @@ from touchdown_ros.core.calibration import (
     apply_scales,
     effect_scales,
     force_scaled,
+    information_standard_errors,
     log_nominal,
     stage1_flags,
+    stage1_information_over,
     stage1_model_and_noise,
-    information_standard_errors,
-    stage1_information,
     stage1_value_and_grad,
 )
 from touchdown_ros.core.selection import (
@@ -43,6 +42,7 @@ from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.optimise import Convergence, minimise
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
 
@@ -139,11 +139,11 @@ class _Problem:
         """`stage1_information` of the free coordinates at x on the fitted samples of `batch` (their
         tangents padded to the most any fit frees: one compilation for every candidate)."""
         count = len(coordinates.names)
-        information = stage1_information(
-            coordinates.theta(x), coordinates.directions(self.tangents), self.base, self.noise, self.scales,
-            self.config.sample_period, place(batch, self.mesh), "nll", self.mesh,
+        information = stage1_information_over(
+            (place(batch, self.mesh),), coordinates.theta(x), coordinates.directions(self.tangents), self.base,
+            self.noise, self.scales, self.config.sample_period, "nll", self.mesh,
         )
-        return np.asarray(jax.device_get(jax.block_until_ready(information)))[:count, :count]
+        return information[:count, :count]
 
     def physical(self, theta: Stage1, name: str) -> dict[str, float]:
         index = self.effects.names.index(name)

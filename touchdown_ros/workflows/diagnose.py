@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.diagnostics.breakdown import contact_phase, regions, windowed_rms
 from touchdown_ros.core.diagnostics.frols import RecordRegressors, Ranking, frols_verdict, rank_effects, ranking_rows
@@ -34,7 +33,7 @@ from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.candidates import FitSettings, fit_candidates, fitted_verdict
 from touchdown_ros.workflows.offline import BagEstimate, bag_effects, estimate_bag, estimator_for
-from touchdown_ros.workflows.progress import progress
+from touchdown_ros.workflows.progress import STDERR, progress
 from touchdown_ros.workflows.report.diagnosis import write_diagnosis
 from touchdown_ros.workflows.training_data import load_training_data
 

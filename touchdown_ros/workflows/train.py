@@ -15,7 +15,6 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import minimize_scalar
 
-from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
 from touchdown_ros.core.calibration import (
     apply_scales,
@@ -31,6 +30,7 @@ from touchdown_ros.core.types import Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
+from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import (  # noqa: F401  (TrainingData, load_training_data: the trainer's API)
     TrainingData,
     load_training_data,
@@ -371,24 +371,25 @@ def train(
             bags=hashes, regularisation=lam, final_loss=final_loss, steps=steps, extra={"calibration": stage1, **extra}
         )
 
-    finished = {"tried": list(progress.tried), "best": _best_record(progress)}
+    finished = [progress]  # the path's progress at its last finished lambda
 
     def on_step(lam: float, step: int, value: float, fitted: Trainable) -> None:
+        so_far = {"tried": list(finished[0].tried), "best": _best_record(finished[0])}
         save_coefficients(
             checkpoint_path(out), fitted.coeffs, calibrated,
             record(lam, step, value, checkpoint=True, stage2_start_effects=initial.effects.values(),
-                   regularisation_path_so_far=finished),
+                   regularisation_path_so_far=so_far),
             fitted.effects,
         )
 
     def on_lambda(so_far: PathProgress) -> None:
+        """Keep the lambda just finished, the lowest so far (`fit_regularisation_path` calls this only then)."""
         fitted, lam, _ = so_far.chosen
-        if finished["best"] is None or finished["best"]["regularisation"] != lam:
-            save_coefficients(
-                lambda_fit_path(out, lam), fitted.coeffs, calibrated, record(lam, fitted.steps, fitted.final_loss),
-                fitted.effects,
-            )
-        finished.update(tried=list(so_far.tried), best=_best_record(so_far))
+        save_coefficients(
+            lambda_fit_path(out, lam), fitted.coeffs, calibrated, record(lam, fitted.steps, fitted.final_loss),
+            fitted.effects,
+        )
+        finished[0] = so_far
 
     path = fit_regularisation_path(
         calibrated, data, lambdas, initial, steps, on_step, stream,
