@@ -198,6 +198,44 @@ def test_axial_kernel_input_is_the_compression():
     np.testing.assert_allclose(float(contact_forces(make_model(coeffs), xi).F_z), k_Z * compression, rtol=1e-12)
 
 
+def hand_ring_forces(xi, v, rig=RIG, p=NOMINAL):
+    """F_n, F_t, F_z with Coulomb friction on the slip against a ring spinning at the rotor speed,
+    written out: the slip of the rotor centre is its velocity minus the ring's (omega x position)."""
+    x, y, z, _, xd, yd, zd = (float(v_) for v_ in xi)
+    r = math.hypot(x, y)
+    n = (x / r, y / r)
+    t = (-n[1], n[0])  # anticlockwise, the rotor's sense of rotation
+    u = (xd + rig.speed * y, yd - rig.speed * x)  # centre velocity minus the ring's velocity there
+    u_n, u_t = u[0] * n[0] + u[1] * n[1], u[0] * t[0] + u[1] * t[1]
+    F_nR = p.k_R * (r - rig.radial_clearance) + p.c_R * (xd * n[0] + yd * n[1]) if r > rig.radial_clearance else 0.0
+    F_zZ = -p.k_Z * (z + rig.axial_clearance) - p.c_Z * zd if z < -rig.axial_clearance else 0.0
+    bore = p.mu * F_nR / math.sqrt(u_t**2 + zd**2 + v**2)  # N per m/s of slip
+    face = p.k_ZR * F_zZ / math.sqrt(u_t**2 + u_n**2 + v**2)
+    force = [-F_nR * n[0] - bore * u_t * t[0] - face * u[0], -F_nR * n[1] - bore * u_t * t[1] - face * u[1]]
+    # F_n along -n, F_t along -t (the paper's directions)
+    F_n = -(force[0] * n[0] + force[1] * n[1])
+    F_t = -(force[0] * t[0] + force[1] * t[1])
+    return F_n, F_t, F_zZ - bore * zd
+
+
+@pytest.mark.parametrize("case", ["radial", "axial", "both"])
+def test_co_rotating_ring_friction_opposes_the_slip_against_the_spinning_ring(case):
+    xi = np.array(CASES[case])
+    paper = make_model()
+    ring = paper._replace(law=paper.law.with_friction("co_rotating_ring", 0.02))
+    forces = contact_forces(ring, jnp.asarray(xi))
+    got = np.array([forces.F_n, forces.F_t, forces.F_z], dtype=float)
+    np.testing.assert_allclose(got, hand_ring_forces(xi, 0.02), rtol=1e-10)
+    assert got[1] < 0.0  # a rotor whirling slower than omega r is driven forward (F_t along +t)
+    assert ring.law.friction == "co_rotating_ring" and paper.law.friction == "paper"
+    # a rotor rolling in forward synchronous whirl (centre velocity omega x position) does not slide
+    x, y = xi[0], xi[1]
+    rolling = xi.copy()
+    rolling[4:6] = (-RIG.speed * y, RIG.speed * x)
+    rolling[6] = 0.0
+    assert float(contact_forces(ring, jnp.asarray(rolling)).F_t) == pytest.approx(0.0, abs=1e-9)
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_ad_jacobian_matches_central_differences(case):
     model = make_model(random_coeffs(1))

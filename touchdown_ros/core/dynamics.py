@@ -15,7 +15,7 @@ from jax import Array
 
 from touchdown_ros.core.effects import FORCE, MEASUREMENT
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
-from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
+from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model, Rig
 
 
 def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -49,6 +49,28 @@ def yielding_support(law: ContactLaw, force: Array) -> Array:
     return force - excess**2 / (law.support_span + excess)
 
 
+def friction(
+    law: ContactLaw, rig: Rig, mu: Array, k_ZR: Array, F_nR: Array, F_zZ: Array,
+    r: Array, rdot: Array, whirl: Array, zdot: Array,
+) -> tuple[Array, Array, Array]:
+    """F_n, F_t, F_z (N) from the normal forces F_nR (bore) and F_zZ (face) and the friction.
+
+    The paper's (the inner ring at rest): F_t = mu F_nR + k_ZR F_zZ (eq. 6b, 8b), F_zR = -mu
+    sign(zdot) F_nR (eq. 6c). Against a ring spinning with the rotor (speed omega), the rotor
+    slides on it at u = centre velocity - omega x centre position: tangentially at
+    s_t = whirl - omega r, radially at rdot, axially at zdot. Coulomb friction opposes that slip
+    with mu F_nR in the bore (on (s_t, zdot)) and k_ZR F_zZ on the face (on (s_t, rdot)),
+    regularised below the law's slip velocity. It drives the rotor towards forward synchronous whirl.
+    """
+    paper = (F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR)
+    v = law.slip_velocity
+    slip_t = whirl - rig.speed * r
+    bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
+    face = k_ZR * F_zZ / jnp.sqrt(slip_t**2 + rdot**2 + v**2)
+    ring = (F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot)
+    return tuple(jnp.where(law.co_rotating_ring > 0.0, b, a) for a, b in zip(paper, ring))
+
+
 def contact_forces(model: Model, xi: Array) -> ContactForces:
     """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
     rig = model.rig
@@ -65,15 +87,10 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, axial_deformation, zdot)
 
     F_nR = normal_force(model.law, k_R, c_R, radial_deformation, rdot)  # eq. 6a
-    F_tR = mu * F_nR  # eq. 6b
-    F_zR = -mu * jnp.sign(zdot) * F_nR  # eq. 6c, friction opposing the axial sliding
     F_zZ = normal_force(model.law, k_Z, c_Z, axial_deformation, -zdot)  # eq. 8c: -k_Z (z + z0) - c_Z zdot
     F_zZ = yielding_support(model.law, F_zZ)
-    F_tZ = k_ZR * F_zZ  # eq. 8b (F_nZ = 0, eq. 8a)
-
-    F_n = F_nR
-    F_t = F_tR + F_tZ
-    F_z = F_zR + F_zZ
+    whirl = cos_a * ydot - sin_a * xdot  # m/s, centre velocity along the anticlockwise tangent
+    F_n, F_t, F_z = friction(model.law, rig, mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot)
     return ContactForces(
         F_n=F_n,
         F_t=F_t,

@@ -51,6 +51,10 @@ class ContactLaw(NamedTuple):
     default, or preloaded disc springs under the housing that yield above the preload P and
     pass at most P + S (degressive). The exponents and the support are traced numbers, so one
     compiled filter serves every law.
+
+    Friction (`dynamics.friction`): the paper's (eq. 6b, 6c, 8b: the ring at rest, F_t = mu F_n +
+    k_ZR F_zZ) or, with `co_rotating_ring` = 1, Coulomb friction on the slip against an inner ring
+    spinning with the rotor, regularised below `slip_velocity` (m/s); also traced.
     """
 
     stiffness_exponent: float = 1.0  # n
@@ -58,6 +62,8 @@ class ContactLaw(NamedTuple):
     floored: float = 0.0  # 1: the force never pulls; 0: as printed
     support_preload: float = float("inf")  # N, face force above which the axial support yields; inf: rigid
     support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
+    co_rotating_ring: float = 0.0  # 1: friction against a ring spinning with the rotor; 0: the paper's
+    slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":
@@ -91,10 +97,25 @@ class ContactLaw(NamedTuple):
         preload + span (N)."""
         return self._replace(support_preload=preload, support_span=span)
 
+    def with_friction(self, friction: str, slip_velocity: float = 0.01) -> "ContactLaw":
+        """The same law with friction `friction` (one of FRICTION_MODELS) regularised below `slip_velocity` m/s."""
+        if friction not in FRICTION_MODELS:
+            raise ValueError(f"friction must be one of {', '.join(FRICTION_MODELS)}, got {friction!r}")
+        if not slip_velocity > 0.0:
+            raise ValueError(f"slip_velocity must be > 0 m/s, got {slip_velocity!r}")
+        return self._replace(co_rotating_ring=float(friction == "co_rotating_ring"), slip_velocity=slip_velocity)
+
+    @property
+    def friction(self) -> str:
+        """'paper' or 'co_rotating_ring' (FRICTION_MODELS)."""
+        return FRICTION_MODELS[int(float(self.co_rotating_ring) > 0.0)]
+
     @property
     def label(self) -> str:
         """'linear', 'hertz n=1.5' or 'hertz n=1.5, support yields above 35.2 kN (at most 45.1 kN)'."""
         law = self.name if self.name == "linear" else f"{self.name} n={self.exponent:.4g}"
+        if self.friction != "paper":
+            law += ", friction on a co-rotating ring"
         if not self.yields:
             return law
         preload, span = float(self.support_preload), float(self.support_span)
@@ -102,6 +123,8 @@ class ContactLaw(NamedTuple):
 
 
 CONTACT_LAWS = ("linear", "hertz")
+#: Friction models: the paper's (ring at rest) and Coulomb friction against a ring spinning with the rotor.
+FRICTION_MODELS = ("paper", "co_rotating_ring")
 
 
 class Kernel(NamedTuple):

@@ -110,6 +110,8 @@ def save_coefficients(
             "exponent": float(config.law.exponent),
             "support_preload": float(config.law.support_preload),  # N; .inf: a rigid axial support
             "support_span": float(config.law.support_span),  # N, it passes at most preload + span
+            "friction": config.law.friction,
+            "slip_velocity": float(config.law.slip_velocity),  # m/s
             "units": _contact_units(config),
             **{name: float(value) for name, value in config.nominal._asdict().items()},
         },
@@ -297,6 +299,13 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
             f"{path}: contact.support_preload and contact.support_span must be numbers > 0 N (.inf: rigid)"
         )
     law = law.with_support(float(preload), float(span))
+    slip_velocity = contact.get("slip_velocity", 0.01)  # files before friction models: the paper's friction
+    if isinstance(slip_velocity, bool) or not isinstance(slip_velocity, (int, float)):
+        raise CoefficientFileError(f"{path}: contact.slip_velocity must be a number > 0 m/s")
+    try:
+        law = law.with_friction(str(contact.get("friction", "paper")), float(slip_velocity))
+    except ValueError as error:
+        raise CoefficientFileError(f"{path}: contact.friction / contact.slip_velocity: {error}") from None
     values = []
     for name in Nominal._fields:
         value = contact.get(name)

@@ -22,7 +22,9 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.estimate import DropDetector
 from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.streaming.settings import StreamSettings
-from touchdown_ros.core.types import CONTACT_LAWS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
+from touchdown_ros.core.types import (
+    CONTACT_LAWS, FRICTION_MODELS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig,
+)
 from touchdown_ros.io.parameters import ConfigError, ParameterReader, flatten_parameters
 
 REFERENCE_RIG_NAME = "reference_rig.yaml"
@@ -327,16 +329,19 @@ def parse_contact_law(text: str) -> ContactLaw:
 
 
 def _contact_law(read: ParameterReader) -> ContactLaw:
-    """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5) and the axial
-    support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N)."""
+    """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5), the axial
+    support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N), and the
+    friction: contact.friction (paper | co_rotating_ring), contact.slip_velocity (m/s)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
     rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support
     read._get("contact.support_span", math.inf)  # read (a known key) also when rigid, where it plays no part
     preload = math.inf if rigid else read.number("contact.support_preload", positive=True)
     span = math.inf if rigid else read.number("contact.support_span", positive=True)
+    friction = read.choice("contact.friction", "paper", FRICTION_MODELS)
+    slip_velocity = read.number("contact.slip_velocity", 0.01, positive=True)
     try:
-        return ContactLaw.of(name, exponent).with_support(preload, span)
+        return ContactLaw.of(name, exponent).with_support(preload, span).with_friction(friction, slip_velocity)
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
@@ -358,7 +363,9 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
             f"{read.source}: parameter 'training.contact_laws' must be a list such as [linear, hertz:1.5]"
         )
     try:
-        candidates = tuple(dict.fromkeys(parse_contact_law(v) for v in laws))
+        candidates = tuple(
+            dict.fromkeys(parse_contact_law(v).with_friction(law.friction, law.slip_velocity) for v in laws)
+        )
     except ValueError as error:
         raise ConfigError(f"{read.source}: training.contact_laws: {error}") from None
     return TrainingSettings(
