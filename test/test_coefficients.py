@@ -99,6 +99,31 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
             load_coefficients(rigid, CONFIG)
 
 
+def test_file_carries_its_friction_and_refuses_a_bad_one(tmp_path):
+    law = ContactLaw.of("hertz", 1.5).with_friction("co_rotating_ring", 0.03)
+    path = save_coefficients(
+        tmp_path / "c.yaml",
+        random_coeffs(),
+        CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise),
+        TrainingRecord(),
+    )
+    assert load_coefficients(path, CONFIG).config(CONFIG).law == law
+    document = yaml.safe_load(path.read_text())
+    assert document["contact"]["friction"] == "co_rotating_ring" and document["contact"]["slip_velocity"] == 0.03
+    del document["contact"]["friction"], document["contact"]["slip_velocity"]  # a file of before: the paper's
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert load_coefficients(path, CONFIG).config(CONFIG).law.friction == "paper"
+    for friction, slip, message in (
+        ("sticky", 0.01, "friction must be one of paper, co_rotating_ring"),
+        ("paper", 0.0, "slip_velocity must be > 0"),
+        ("paper", "fast", "slip_velocity must be a number"),
+    ):
+        document["contact"].update(friction=friction, slip_velocity=slip)
+        path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=message):
+            load_coefficients(path, CONFIG)
+
+
 def test_file_carries_the_smoothing_noise_scale_and_the_offline_estimate_uses_it(tmp_path):
     """The offline estimate filters and smooths with Q times the file's factor; the live node's Q
     (`noise`) stays the fitted one; a file of before has none (1); a bad one is refused."""

@@ -101,6 +101,14 @@ def test_contact_law_and_training_settings(tmp_path):
         load_config(overrides={"training.contact_laws": ["hertz:x"]})
     with pytest.raises(ConfigError, match="training.loss"):
         load_config(overrides={"training.loss": "mse"})
+    ring = load_config(overrides={"contact.friction": "co_rotating_ring", "contact.slip_velocity": 0.02})
+    assert (ring.law.friction, ring.law.slip_velocity, ring.model().law) == ("co_rotating_ring", 0.02, ring.law)
+    assert {(law.friction, law.slip_velocity) for law in ring.training.contact_laws} == {("co_rotating_ring", 0.02)}
+    assert load_config().law.friction == "paper"
+    with pytest.raises(ConfigError, match="contact.friction"):
+        load_config(overrides={"contact.friction": "sticky"})
+    with pytest.raises(ConfigError, match="contact.slip_velocity"):
+        load_config(overrides={"contact.slip_velocity": 0.0})
 
 
 def test_deep_shared_memory_profile_is_a_fast_dds_profile():
