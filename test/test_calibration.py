@@ -302,7 +302,9 @@ def test_centres_are_placed_over_the_contact_samples():
     T, scale = place_centres(deformation, velocity)
     physical = T * scale
     assert T.shape == (25, 2)
-    assert physical[:, 0].min() == 0.0 and physical[:, 0].max() == pytest.approx(np.max(deformation[:500]))
+    # the top row at the 95th percentile of the contact deformations: below the sparse peaks
+    assert physical[:, 0].min() == 0.0 and physical[:, 0].max() == pytest.approx(np.percentile(deformation[:500], 95))
+    assert physical[:, 0].max() < 0.97 * np.max(deformation[:500])
     in_contact = velocity[:500]
     assert physical[:, 1].min() == pytest.approx(np.percentile(in_contact, 1))
     assert physical[:, 1].max() == pytest.approx(np.percentile(in_contact, 99))
