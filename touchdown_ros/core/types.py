@@ -114,8 +114,6 @@ class ContactLaw(NamedTuple):
     def label(self) -> str:
         """'linear', 'hertz n=1.5' or 'hertz n=1.5, support yields above 35.2 kN (at most 45.1 kN)'."""
         law = self.name if self.name == "linear" else f"{self.name} n={self.exponent:.4g}"
-        if self.friction != "paper":
-            law += ", friction on a co-rotating ring"
         if not self.yields:
             return law
         preload, span = float(self.support_preload), float(self.support_span)

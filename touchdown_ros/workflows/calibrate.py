@@ -80,6 +80,7 @@ class Calibration:
         nominal = self.config.nominal
         return {
             "law": self.config.law.label,
+            "friction": self.config.law.friction,
             "guess": {k: float(v) for k, v in self.guess._asdict().items()},
             "calibrated": {k: float(v) for k, v in nominal._asdict().items()},
             "relative_standard_error": {k: round(v, 6) for k, v in self.relative_sd.items()},
