@@ -153,6 +153,19 @@ def test_a_candidate_refused_on_held_out_samples_does_not_hide_one_that_passes()
     assert not alone["explained"] and alone["best"] == "trading" and alone["refused"] == []
 
 
+def test_a_refusal_names_the_test_the_candidate_failed():
+    """side load on stiff_quiet (2026-11-25, co-rotating ring): radial_load lowered the held-out k-step
+    error by 6 % but not the held-out NLL; the verdict said "changes the k-step error by -6 % (it must
+    fall by more than 0 %), or the NLL or the criterion does not fall", which reads as a k-step failure."""
+    judged = sel.Judged("load", criterion=-145.6, nll_fall=-0.002, k_step_fall=0.06, phase_k_step_fall={})
+    text = sel.verdict([judged])["text"]
+    assert "its held-out NLL does not fall (+0.0020 per sample)" in text
+    assert "k-step" not in text and "criterion does not fall" not in text
+    both = sel.Judged("load", criterion=3.0, nll_fall=0.01, k_step_fall=-0.02, phase_k_step_fall={})
+    text = sel.verdict([both])["text"]
+    assert "its criterion does not fall (+3.0)" in text and "k-step error by +2 %" in text and "NLL" not in text
+
+
 def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_differ():
     base_fitted, base_held = _errors(3.0, 9e-6)
     base = (base_fitted, base_held, 8)

@@ -232,7 +232,7 @@ def verdict(
         )
     else:
         text = (
-            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}) {refusal}; "
+            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}): {refusal}; "
             "see the residual's signature"
         )
     if collinear and collinear["phase"]:
@@ -262,12 +262,17 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float) -> str | None:
     worst_fall = falls[worst_phase] if worst_phase else 0.0
     if worst_fall < -max_rise:
         return (
-            f"raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "
+            f"it raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "
             "(it trades one phase for another)"
         )
-    if candidate.criterion < 0.0 and candidate.nll_fall > 0.0 and candidate.k_step_fall > min_fall:
-        return None
-    return (
-        f"changes the held-out k-step error by {-100 * candidate.k_step_fall:+.0f} % (it must fall by more than "
-        f"{100 * min_fall:.0f} %), or the NLL or the criterion does not fall"
-    )
+    failed = []
+    if candidate.criterion >= 0.0:
+        failed.append(f"its criterion does not fall ({candidate.criterion:+.1f})")
+    if candidate.nll_fall <= 0.0:
+        failed.append(f"its held-out NLL does not fall ({-candidate.nll_fall:+.4f} per sample)")
+    if candidate.k_step_fall <= min_fall:
+        failed.append(
+            f"it changes the held-out k-step error by {-100 * candidate.k_step_fall:+.0f} % (it must fall by more "
+            f"than {100 * min_fall:.0f} %)"
+        )
+    return "; ".join(failed) or None
