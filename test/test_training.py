@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from touchdown_ros.core.dynamics import rk4_step
-from touchdown_ros.core.training import loss, make_batch, prediction_errors
+from touchdown_ros.core.pkbkr import coloured, rkhs_distance, whitened, whitening
+from touchdown_ros.core.training import hold_out, loss, make_batch, prediction_errors
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.train import Trainable, TrainingData, fit, fit_regularisation_path
@@ -100,6 +101,25 @@ def test_fit_recovers_the_loss_of_the_true_model():
     assert result.initial_loss > 1.05 * true_loss  # the constant model is measurably wrong here
     assert result.final_loss < true_loss + 0.05 * (result.initial_loss - true_loss)
     assert result.history == tuple(sorted(result.history, reverse=True))
+    # the fit runs in whitened coordinates: the coefficients it returns are the ones its loss belongs to
+    train_batch = hold_out(batch, CONFIG.held_out_block_samples(), CONFIG.training.held_out_every)
+    fitted = float(loss(result.coeffs, CONFIG.model(), CONFIG.training_noise(), H, train_batch, 1e-5,
+                        kind=CONFIG.training.loss))
+    assert fitted == pytest.approx(result.final_loss, rel=1e-9)
+
+
+def test_whitened_coordinates_turn_the_rkhs_distance_into_a_squared_norm():
+    """beta_k = L^T alpha_k with K = L L^T: |beta|^2 is eq. 18's penalty, and alpha comes back from beta."""
+    rng = np.random.default_rng(7)
+    zeros = Coefficients.zeros(CONFIG.kernel)
+    alpha = Coefficients(rng.standard_normal(zeros.alpha_R.shape), rng.standard_normal(zeros.alpha_Z.shape))
+    w = whitening(CONFIG.kernel)
+    beta = whitened(w, alpha)
+    norm = float(jnp.sum(beta.alpha_R**2) + jnp.sum(beta.alpha_Z**2))
+    assert norm == pytest.approx(float(rkhs_distance(CONFIG.kernel, alpha)), rel=1e-7)  # (L L^T = K + 1e-9 I)
+    back = coloured(w, beta)
+    np.testing.assert_allclose(back.alpha_R, alpha.alpha_R, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(back.alpha_Z, alpha.alpha_Z, rtol=1e-9, atol=1e-9)
 
 
 def test_lambda_is_chosen_by_the_held_out_loss():

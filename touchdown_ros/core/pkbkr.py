@@ -8,8 +8,11 @@ p / f0 - 1 and 0 is alpha^T K alpha with K = Q(T, T).
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 from jax import Array
+from jax.scipy.linalg import solve_triangular
 
 from touchdown_ros.core.types import Coefficients, Kernel, Nominal
 
@@ -65,3 +68,38 @@ def rkhs_distance(kernel: Kernel, coeffs: Coefficients) -> Array:
     radial = jnp.einsum("pi,ij,pj->", coeffs.alpha_R, K_R, coeffs.alpha_R)
     axial = jnp.einsum("pi,ij,pj->", coeffs.alpha_Z, K_Z, coeffs.alpha_Z)
     return radial + axial
+
+
+#: Added to K's unit diagonal before its Cholesky factor, so that centres that coincide still factor.
+GRAM_JITTER = 1.0e-9
+
+
+class Whitening(NamedTuple):
+    """Cholesky factors K = L L^T of the two centre sets. In the coordinates beta_k = L^T alpha_k
+    the RKHS distance is |beta|^2 and the loss is far better conditioned for L-BFGS
+    (docs/calibration.md, "Stage 2 in whitened coordinates")."""
+
+    L_R: Array
+    L_Z: Array
+
+
+def whitening(kernel: Kernel) -> Whitening:
+    def factor(K: Array) -> Array:
+        return jnp.linalg.cholesky(K + GRAM_JITTER * jnp.eye(K.shape[0]))
+
+    K_R, K_Z = gram(kernel)
+    return Whitening(factor(K_R), factor(K_Z))
+
+
+def whitened(w: Whitening, coeffs: Coefficients) -> Coefficients:
+    """beta_k = L^T alpha_k of every row of the coefficients."""
+    return Coefficients(coeffs.alpha_R @ w.L_R, coeffs.alpha_Z @ w.L_Z)
+
+
+def coloured(w: Whitening, beta: Coefficients) -> Coefficients:
+    """alpha_k = L^-T beta_k: the coefficients whose whitened coordinates are beta."""
+
+    def solve(L: Array, rows: Array) -> Array:
+        return solve_triangular(L, rows.T, lower=True, trans="T").T
+
+    return Coefficients(solve(w.L_R, beta.alpha_R), solve(w.L_Z, beta.alpha_Z))

@@ -24,6 +24,7 @@ from touchdown_ros.core.calibration import (
     scaled_bounds,
 )
 from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.pkbkr import Whitening, coloured, whitened, whitening
 from touchdown_ros.core.smoothing import leave_one_out_error
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import Coefficients, FilterNoise, Model
@@ -60,19 +61,20 @@ class Trainable(NamedTuple):
 
 
 def make_objective(config: Config) -> Callable:
-    """Jitted ((loss, held-out loss), gradient of the loss) of eq. 18 in (coefficients, scaled effect
-    parameters), the records spread over `record_mesh()`; the batch and lambda are arguments (the
-    batch `place`d on that mesh), so batches of one shape (e.g. cross-validation folds) and every
-    lambda share one compilation."""
+    """Jitted ((loss, held-out loss), gradient of the loss) of eq. 18 in (whitened coefficients beta,
+    scaled effect parameters), the records spread over `record_mesh()`; the batch, lambda and the
+    kernel's `Whitening` are arguments (the batch `place`d on that mesh), so batches of one shape
+    (e.g. cross-validation folds) and every lambda share one compilation."""
     model, mesh, kind = config.model(), record_mesh(), config.training.loss
 
     def objective(
-        trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array
+        trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array, w: Whitening
     ) -> tuple[jax.Array, jax.Array]:
         effects = apply_scales(trainable.effects, scales)
         noise = config.training_noise()
         return loss_and_held_out(
-            trainable.coeffs, model, noise, config.sample_period, batch, regularisation, effects, mesh, kind
+            coloured(w, trainable.coeffs), model, noise, config.sample_period, batch, regularisation, effects, mesh,
+            kind,
         )
 
     return jax.jit(jax.value_and_grad(objective, has_aux=True))
@@ -91,7 +93,8 @@ def fit(
     tolerance: float | None = None,
 ) -> TrainingResult:
     """Stage 2: minimise eq. 18 (with the rig's `training.loss`) with L-BFGS from `initial`
-    (default: all alpha = 0, the constant model, and the rig's effects at their configured values).
+    (default: all alpha = 0, the constant model, and the rig's effects at their configured values),
+    in the whitened coordinates beta = L^T alpha of the coefficients (`core.pkbkr.Whitening`).
     One block of samples in every `training.held_out_every` is left out of the loss; the step where
     their error is lowest is kept (the start included), and the fit stops when it has not fallen
     for `training.patience` steps.
@@ -107,16 +110,19 @@ def fit(
                      settings.held_out_every)
     note_ungated(initial.effects, (batch,), stream)
     objective = objective or make_objective(config)
-    theta0, unravel = ravel_pytree(Trainable(initial.coeffs, apply_scales(initial.effects, scales, inverse=True)))
+    w = whitening(config.kernel)
+    theta0, unravel = ravel_pytree(
+        Trainable(whitened(w, initial.coeffs), apply_scales(initial.effects, scales, inverse=True))
+    )
     # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
     # so their gradient is zero and they never move)
 
     def physical(theta: np.ndarray) -> Trainable:
         scaled = unravel(theta)
-        return Trainable(scaled.coeffs, apply_scales(scaled.effects, scales))
+        return Trainable(coloured(w, scaled.coeffs), apply_scales(scaled.effects, scales))
 
     def value_and_grad(theta: np.ndarray):
-        (value, held_out), grad = objective(unravel(theta), scales, batch, np.float64(regularisation))
+        (value, held_out), grad = objective(unravel(theta), scales, batch, np.float64(regularisation), w)
         gradient = np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
         return (float(value), gradient, float(held_out)) if settings.held_out_every > 1 else (float(value), gradient)
 
