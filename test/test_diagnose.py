@@ -271,24 +271,7 @@ HIDDEN_LIBRARY_EFFECTS = {
 }
 
 
-#: Cases the friction against a co-rotating ring (the default since 2026-11-25) lost; issue 16.
-RING_FRICTION_REGRESSIONS = {
-    "contact angle": "issue 16: with the ring's friction (its axial part mu F_n zdot / |slip| grows with F_n as "
-    "the contact angle's force does) diagnose sizes tan_beta k_radial 12 % low (stage 1 with it: 5 % low)",
-    "cross-coupled stiffness": "issue 16: with the ring's friction (forward whirl drive, as q r is) the fitted "
-    "cross-coupling raises the held-out k-step error in radial-only contact by 12 % and is refused",
-}
-
-
-@pytest.mark.parametrize(
-    "case",
-    [
-        pytest.param(case, marks=pytest.mark.xfail(strict=True, reason=RING_FRICTION_REGRESSIONS[case]))
-        if case in RING_FRICTION_REGRESSIONS
-        else case
-        for case in sorted(HIDDEN_LIBRARY_EFFECTS)
-    ],
-)
+@pytest.mark.parametrize("case", sorted(HIDDEN_LIBRARY_EFFECTS))
 def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_error(case, tmp_path):
     rig_name, simulator, effect, true_size, fitted_size, tolerance, axes, k_step_ratio = HIDDEN_LIBRARY_EFFECTS[case]
     bags, rig, truths = _family(tmp_path / "bags", rig_name, **simulator)
