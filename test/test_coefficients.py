@@ -75,15 +75,17 @@ def test_file_carries_its_calibration(tmp_path):
         load_coefficients(path, CONFIG)
 
 
-def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
-    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4)
+def saved_with_law(path, law):
+    """A coefficient file of the reference rig calibrated with `law`, checked to load it back."""
     path = save_coefficients(
-        tmp_path / "c.yaml",
-        random_coeffs(),
-        CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise),
-        TrainingRecord(),
+        path, random_coeffs(), CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise), TrainingRecord()
     )
     assert load_coefficients(path, CONFIG).config(CONFIG).law == law
+    return path
+
+
+def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
+    saved_with_law(tmp_path / "c.yaml", ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4))
     rigid = save_coefficients(tmp_path / "rigid.yaml", random_coeffs(), CONFIG, TrainingRecord())
     document = yaml.safe_load(rigid.read_text())
     assert document["contact"]["support_preload"] == float("inf")  # written as .inf
@@ -100,14 +102,7 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
 
 
 def test_file_carries_its_friction_and_refuses_a_bad_one(tmp_path):
-    law = ContactLaw.of("hertz", 1.5).with_friction("co_rotating_ring", 0.03)
-    path = save_coefficients(
-        tmp_path / "c.yaml",
-        random_coeffs(),
-        CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise),
-        TrainingRecord(),
-    )
-    assert load_coefficients(path, CONFIG).config(CONFIG).law == law
+    path = saved_with_law(tmp_path / "c.yaml", ContactLaw.of("hertz", 1.5).with_friction("co_rotating_ring", 0.03))
     document = yaml.safe_load(path.read_text())
     assert document["contact"]["friction"] == "co_rotating_ring" and document["contact"]["slip_velocity"] == 0.03
     del document["contact"]["friction"], document["contact"]["slip_velocity"]  # a file of before: the paper's
