@@ -460,8 +460,8 @@ def place_centres(
 
     The few samples of an impact's peak cannot tell a local correction (10 % of the peak force
     moves a sample by about 0.1 um against 1-5 um of sensor noise), so centres there were set by
-    the regulariser and the optimiser's path, not the data (docs/calibration.md, "Where the
-    learned functions act"): the peaks are left to the calibrated contact law of stage 1.
+    the regulariser and the optimiser's path, not the data (docs/calibration.md, "Friction against
+    a co-rotating ring, and where the learned functions act"): the peaks are left to stage 1's law.
 
     Returns (T (count^2, 2) in normalised units, scale (2,) m and m/s): one normalised unit is
     one grid spacing, so a width of 1 lets neighbouring centres overlap as on the YAML grid.
