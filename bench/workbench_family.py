@@ -10,7 +10,8 @@ held-out k-step prediction error of the baseline and with the named candidate.
     .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N]
 
 --fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 3); each call's wall
-time is kept in the row ("diagnose_seconds").
+time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
+as large (a sensor gain's deviation from 1): how large an effect must be for the gate to hold.
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on (`-p effects.active:=[effect]`): its fitted
@@ -104,6 +105,21 @@ CASES: tuple[Case, ...] = (
     Case("twice-per-revolution radial force", "kelvin_voigt_light", {"twice_per_rev_force": 300.0}, None,
          lambda t: {}),
 )
+
+
+def scaled(case: Case, factor: float) -> Case:
+    """The case with its hidden effect `factor` times as large (a sensor gain's deviation from 1);
+    ValueError for a case whose effect has no simulator size (the loader, no hidden effect)."""
+    if not case.simulator:
+        raise ValueError(f"{case.name!r} on {case.rig} has no simulator size to scale")
+    simulator = {
+        k: 1.0 + factor * (v - 1.0) if k.startswith("sensor_gain_") else factor * v for k, v in case.simulator.items()
+    }
+    truth = case.truth
+    sensor = {k.split("_")[1]: v for k, v in simulator.items() if k.startswith("sensor_")}
+    if sensor:  # a sensor error is not in `Truth`: its size is the simulator's
+        truth = lambda t, values=sensor: dict(values)  # noqa: E731
+    return case._replace(name=f"{case.name} x{factor:g}", simulator=simulator, truth=truth)
 
 
 def simulate(case: Case, out: Path) -> tuple[list[Path], Path, list[Truth]]:
@@ -291,10 +307,16 @@ def main(argv: list[str] | None = None) -> int:
         "--fit", type=int, default=None,
         help="passed to every `touchdown diagnose` call: fit FROLS's best N candidates (default: diagnose's own)",
     )
+    parser.add_argument("--scale", type=float, default=None, help="each chosen hidden effect this many times as large")
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
         parser.error(f"no such case; choose from {', '.join(c.name for c in CASES)}")
+    if args.scale is not None:
+        try:
+            chosen = [scaled(c, args.scale) for c in chosen]
+        except ValueError as error:
+            parser.error(f"--scale: {error}")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in chosen:
