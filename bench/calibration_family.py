@@ -31,10 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.metrics import relative_peak_error
 from touchdown_ros.io.coefficients import load_coefficients
-from touchdown_ros.workflows.offline import estimate_bag, estimator_for, radial_force_std
+from touchdown_ros.workflows.offline import estimate_bag, estimator_for
 from touchdown_ros.sim.family import VARIANTS, variant, variant_config, write_variant_bags
 from touchdown_ros.workflows.train import train
 
@@ -50,21 +49,16 @@ def _coverage(estimate: np.ndarray, cov: np.ndarray | None, truth: np.ndarray) -
     return float(100.0 * np.mean((np.abs(estimate - truth) <= Z95 * sd)[ok]))
 
 
-def _peak_anatomy(force: np.ndarray, force_cov: np.ndarray | None, true_force: np.ndarray) -> dict[str, float | None]:
-    """Per axis (axial, radial): the estimate at the truth's peak sample against the truth's peak (%), and the
-    estimate's own 1-sigma at its peak sample over the truth's peak (%): whether a peak error is a bias or
-    lies within what the estimate says it knows."""
-    figures: dict[str, float | None] = {}
-    radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(true_force[:, 0], true_force[:, 1])
-    for axis, estimate, truth in (("axial", force[:, 2], true_force[:, 2]), ("radial", radial, true_radial)):
-        at, peak = int(np.nanargmax(np.abs(truth))), int(np.nanargmax(np.abs(estimate)))
-        true_peak = float(np.abs(truth[at]))
-        figures[f"{axis}_at_true_peak_error_percent"] = 100.0 * (float(np.abs(estimate[at])) - true_peak) / true_peak
-        if force_cov is None:
-            figures[f"{axis}_peak_std_percent"] = None
-            continue
-        sd = force_std(force_cov[peak])[2] if axis == "axial" else radial_force_std(force[peak], force_cov[peak])
-        figures[f"{axis}_peak_std_percent"] = 100.0 * float(sd) / true_peak
+def _peak_anatomy(series: dict[str, tuple[np.ndarray, np.ndarray]], summary: dict) -> dict[str, float]:
+    """Per axis of `series` (axis -> (estimated, true) force, N): the estimate at the truth's peak sample
+    against the truth's peak (%), and the estimate's own 1-sigma at its peak (the bag summary's) over the
+    truth's peak (%): whether a peak error is a bias or lies within what the estimate says it knows."""
+    figures: dict[str, float] = {}
+    for axis, (estimate, truth) in series.items():
+        true_peak = summary["truth"][f"peak_{axis}_force_true_N"]
+        at_true_peak = float(estimate[int(np.nanargmax(truth))])
+        figures[f"{axis}_at_true_peak_error_percent"] = 100.0 * (at_true_peak - true_peak) / true_peak
+        figures[f"{axis}_peak_std_percent"] = 100.0 * summary[f"peak_{axis}_force_std_N"] / true_peak
     return figures
 
 
@@ -79,7 +73,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     measured = result.estimate.measured
     force_cov = getattr(smoothed, "force_cov", None)
     return {
-        **_peak_anatomy(force, force_cov, true_force),
+        **_peak_anatomy({"axial": (force[:, 2], true_force[:, 2]), "radial": (radial, true_radial)}, result.summary),
         "peak_axial_error_percent": 100.0 * relative_peak_error(force[:, 2], true_force[:, 2]),
         "peak_radial_error_percent": 100.0 * relative_peak_error(radial, true_radial),
         "force_rmse_percent_of_peak": 100.0 * force_rmse / peak,
@@ -169,9 +163,8 @@ def anatomy_table(results: list[dict]) -> str:
     ]
 
     def cell(row: dict, axis: str) -> str:
-        sd = row[f"{axis}_peak_std_percent"]
         return (f"{row[f'peak_{axis}_error_percent']:+.1f} / {row[f'{axis}_at_true_peak_error_percent']:+.1f} / "
-                + ("-" if sd is None else f"{sd:.1f}"))
+                f"{row[f'{axis}_peak_std_percent']:.1f}")
 
     for result in results:
         for label, rows in result["figures"].items():
