@@ -14,9 +14,11 @@ time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's
 as large (a sensor gain's deviation from 1): how large an effect must be for the gate to hold.
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
-Then stage 1 again with the true effect switched on (`-p effects.active:=[effect]`): its fitted
-parameters against the truth, and the contact force RMSE of the smoothed estimate against the
-truth without and with it. A case passes when the verdict is right, every parameter is within
+Then stage 1 again with the true effect switched on beside the effects the rounds added
+(`-p effects.active:=[added..., effect]`): its fitted parameters against the truth, and the contact
+force RMSE of the smoothed estimate against the truth without and with it; when the rounds added
+any, stage 1 with the true effect alone as well ("alone:" in the table), to see what the effects
+added first take from it. A case passes when the verdict is right, every parameter is within
 10 % of the truth (of the largest component for a vector such as a side load) and the held-out
 k-step error on the axes where the effect acts or the contact force error falls to at most half;
 for an effect no candidate models, when the verdict is "unexplained".
@@ -217,13 +219,16 @@ def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
     after = np.asarray(judged["held_out_k_step_rmse_m"]) if judged else before
     k_step_ratio = float(np.linalg.norm(after[axes]) / np.linalg.norm(before[axes]))
     force_before = force_rmse(rig, calibrated, bags)
-    trained, force_after = {}, force_before
+    trained, alone, force_after = {}, {}, force_before
     if case.effect:
         with_effect = train(out / "with_effect.yaml", [*added, case.effect])
         trained = case.identifiable(fitted_effect(with_effect, case.effect))
         force_after = force_rmse(rig, with_effect, bags)
+        if added:  # what the effects added first take from it: stage 1 with the hidden effect alone
+            alone = case.identifiable(fitted_effect(train(out / "with_effect_alone.yaml", [case.effect]), case.effect))
     (out / "log.txt").write_text(log.getvalue())
     errors, trained_errors = _relative_errors(fitted, truth), _relative_errors(trained, truth)
+    alone_errors = _relative_errors(alone, truth)
     right = verdict["explained"] and verdict["best"] == case.effect if case.effect else not verdict["explained"]
     force_ratio = force_after / force_before
     return {
@@ -243,6 +248,8 @@ def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
         "relative_error": errors,
         "trained": trained,
         "trained_relative_error": trained_errors,
+        "trained_alone": alone,
+        "trained_alone_relative_error": alone_errors,
         "axes": case.axes,
         "k_step_before_m": before.tolist(),
         "k_step_after_m": after.tolist(),
@@ -284,7 +291,8 @@ def table(rows: list[dict]) -> str:
             f"| {r['case']} | {r['rig']} | {_added(r)}{r['verdict'].split(';')[0].split(' (')[0]} | "
             f"{'-' if margin is None else f'{margin:.1f}'} ({r['second']}) | "
             f"{_fits(r['fitted'], r['relative_error'])} | "
-            f"{_fits(r['trained'], r['trained_relative_error'])} | {_values(r['truth'])} | {ks} | {force} | {marks} |"
+            f"{_fits(r['trained'], r['trained_relative_error'])}{_alone(r)} | {_values(r['truth'])} | {ks} | {force} | "
+            f"{marks} |"
         )
     return "\n".join(lines)
 
@@ -293,6 +301,12 @@ def _added(row: dict) -> str:
     """The effects named and added in earlier rounds, if any."""
     added = row.get("added_first", [])
     return f"after adding {', '.join(added)}: " if added else ""
+
+
+def _alone(row: dict) -> str:
+    """Stage 1's fit with the hidden effect alone, when earlier rounds had added others (rows before it lack it)."""
+    alone = row.get("trained_alone")
+    return f"; alone: {_fits(alone, row['trained_alone_relative_error'])}" if alone else ""
 
 
 def _fits(values: Mapping[str, float], errors: Mapping[str, float]) -> str:
