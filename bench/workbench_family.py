@@ -304,8 +304,8 @@ def _added(row: dict) -> str:
 
 
 def _alone(row: dict) -> str:
-    """Stage 1's fit with the hidden effect alone, when earlier rounds had added others (rows before it lack it)."""
-    alone = row.get("trained_alone")
+    """Stage 1's fit with the hidden effect alone, when earlier rounds had added others."""
+    alone = row["trained_alone"]
     return f"; alone: {_fits(alone, row['trained_alone_relative_error'])}" if alone else ""
 
 
