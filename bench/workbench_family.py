@@ -9,7 +9,7 @@ held-out k-step prediction error of the baseline and with the named candidate.
 
     .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N]
 
---fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 3); each call's wall
+--fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 10 since 2026-11-25); each call's wall
 time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
 as large (a sensor gain's deviation from 1): how large an effect must be for the gate to hold.
 
