@@ -62,13 +62,13 @@ def friction(
     with mu F_nR in the bore (on (s_t, zdot)) and k_ZR F_zZ on the face (on (s_t, rdot)),
     regularised below the law's slip velocity. It drives the rotor towards forward synchronous whirl.
     """
-    paper = (F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR)
+    if law.friction == "paper":  # static: the law's friction model is pytree aux data
+        return F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR
     v = law.slip_velocity
     slip_t = whirl - rig.speed * r
     bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
     face = k_ZR * F_zZ / jnp.sqrt(slip_t**2 + rdot**2 + v**2)
-    ring = (F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot)
-    return tuple(jnp.where(law.co_rotating_ring > 0.0, b, a) for a, b in zip(paper, ring))
+    return F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot
 
 
 def contact_forces(model: Model, xi: Array) -> ContactForces:

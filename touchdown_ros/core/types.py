@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -54,7 +55,9 @@ class ContactLaw(NamedTuple):
 
     Friction (`dynamics.friction`): the paper's (eq. 6b, 6c, 8b: the ring at rest, F_t = mu F_n +
     k_ZR F_zZ) or, with `co_rotating_ring` = 1, Coulomb friction on the slip against an inner ring
-    spinning with the rotor, regularised below `slip_velocity` (m/s); also traced.
+    spinning with the rotor, regularised below `slip_velocity` (m/s). The choice is static (pytree
+    aux data, registered below): a program holds one friction model, not both selected per sample,
+    which cost 38 % of stage 1's compilation and 25 % of its step (docs/calibration.md, "Cost").
     """
 
     stiffness_exponent: float = 1.0  # n
@@ -119,6 +122,19 @@ class ContactLaw(NamedTuple):
         preload, span = float(self.support_preload), float(self.support_span)
         return f"{law}, support yields above {preload / 1e3:.3g} kN (at most {(preload + span) / 1e3:.3g} kN)"
 
+
+_LAW_FIELDS = tuple(f for f in ContactLaw._fields if f != "co_rotating_ring")
+
+
+def _flatten_law(law: ContactLaw) -> tuple[tuple, float]:
+    return tuple(getattr(law, f) for f in _LAW_FIELDS), float(law.co_rotating_ring)
+
+
+def _unflatten_law(co_rotating_ring: float, children: tuple) -> ContactLaw:
+    return ContactLaw(**dict(zip(_LAW_FIELDS, children)), co_rotating_ring=co_rotating_ring)
+
+
+jax.tree_util.register_pytree_node(ContactLaw, _flatten_law, _unflatten_law)
 
 CONTACT_LAWS = ("linear", "hertz")
 #: Friction models: the paper's (ring at rest) and Coulomb friction against a ring spinning with the rotor.
