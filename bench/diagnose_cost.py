@@ -4,7 +4,11 @@ with the candidates fitted (the default, --fit 10; and 3, the default before 202
 FROLS pass alone (--fit 0), from an empty compilation cache and once more on the cache the first
 run filled.
 
-    .venv/bin/python bench/diagnose_cost.py [--runs 1]
+    .venv/bin/python bench/diagnose_cost.py [--runs 1] [--fits 10,3,0] [--against COMMIT_CHECKOUT]
+
+`--against DIR` runs that checkout's `touchdown diagnose` (e.g. `git worktree add /tmp/old <commit>`) in
+turn with this one's, each with its own cache, from the same calibration (this checkout's stage 1), and
+prints the ratios run by run.
 
 Target (issue 16): <= 20 s per model.
 """
@@ -23,7 +27,10 @@ from calibration_cost import in_turn, print_table, timed
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument("--fits", default="10,3,0", help="the --fit values to run, comma-separated")
+    parser.add_argument("--against", type=Path, help="another checkout, run in turn with the same options")
     args = parser.parse_args()
+    fits = [int(v) for v in args.fits.split(",")]
     python = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
         bags_dir = Path(tmp) / "bags"
@@ -35,20 +42,35 @@ def main() -> int:
             [*touchdown, "train", *bags, "-o", calibrated, "--steps", "0"], check=True, stderr=subprocess.DEVNULL
         )
 
-        def diagnose(fit: int, cache: str) -> dict:
+        def diagnose(fit: int, cache: str, checkout: Path | None = None) -> dict:
             out = str(Path(tmp) / "diagnosis")
             env = dict(os.environ, TOUCHDOWN_XLA_CACHE=cache)
+            if checkout is not None:
+                env["PYTHONPATH"] = str(checkout)
             return timed(
-                [*touchdown, "diagnose", *bags, "--coeffs", calibrated, "--out", out, "--fit", str(fit)], env=env
+                [*touchdown, "diagnose", *bags, "--coeffs", calibrated, "--out", out, "--fit", str(fit)], env=env,
+                cwd=None if checkout is None else str(checkout),
             )
 
         cases = {}
-        for fit in (10, 3, 0):
-            cache = str(Path(tmp) / f"cache_{fit}")
-            cases[f"--fit {fit}, empty compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, _emptied(cache))
-            cases[f"--fit {fit}, warm compilation cache"] = lambda fit=fit, cache=cache: diagnose(fit, cache)
+        for fit in fits:
+            for checkout in [None] if args.against is None else [None, args.against]:
+                cache = str(Path(tmp) / f"cache_{fit}_{'other' if checkout else 'this'}")
+                name = f"{checkout}: " if checkout else ""
+                cases[f"{name}--fit {fit}, empty compilation cache"] = (
+                    lambda fit=fit, cache=cache, checkout=checkout: diagnose(fit, _emptied(cache), checkout))
+                cases[f"{name}--fit {fit}, warm compilation cache"] = (
+                    lambda fit=fit, cache=cache, checkout=checkout: diagnose(fit, cache, checkout))
         results = in_turn(cases, args.runs)
     print_table(results, "diagnose, 2 bags x 0.15 s")
+    if args.against is not None:
+        for name in [n for n in results if not n.startswith(f"{args.against}: ")]:
+            ours, theirs = results[name], results[f"{args.against}: {name}"]
+            pairs = [a["seconds"] / b["seconds"] for a, b in zip(ours, theirs)]
+            cpu = [a["cpu_seconds"] / b["cpu_seconds"] for a, b in zip(ours, theirs)
+                   if a.get("cpu_seconds") and b.get("cpu_seconds")]
+            print(f"{name}: this / {args.against}: wall {', '.join(f'{r:.2f}' for r in pairs)}; "
+                  f"CPU {', '.join(f'{r:.2f}' for r in cpu)}")
     return 0
 
 
