@@ -236,6 +236,27 @@ def test_co_rotating_ring_friction_opposes_the_slip_against_the_spinning_ring(ca
     assert float(contact_forces(ring, jnp.asarray(rolling)).F_t) == pytest.approx(0.0, abs=1e-9)
 
 
+def test_friction_model_is_static_in_a_compiled_program():
+    """The friction model is pytree aux data: a jitted function of the model sees it as a Python value
+    (one model traced, not both selected per sample) and compiles once per model; the law's numbers
+    stay traced (one program for every exponent and slip velocity)."""
+    paper = make_model()
+    ring = paper._replace(law=paper.law.with_friction("co_rotating_ring", 0.02))
+    seen = []
+
+    @jax.jit
+    def force(model, xi):
+        seen.append((model.law.friction, isinstance(model.law.slip_velocity, jax.core.Tracer)))
+        return contact_forces(model, xi).F_t
+
+    xi = jnp.asarray(CASES["radial"])
+    for model in (paper, ring, ring._replace(law=ring.law.with_friction("co_rotating_ring", 0.03))):
+        expected = contact_forces(model, xi).F_t
+        assert float(force(model, xi)) == pytest.approx(float(expected), rel=1e-12)
+    assert seen == [("paper", True), ("co_rotating_ring", True)]  # the second ring reused the program
+    assert len(jax.tree.leaves(ring.law)) == len(ring.law) - 1
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_ad_jacobian_matches_central_differences(case):
     model = make_model(random_coeffs(1))
