@@ -56,8 +56,9 @@ class ContactLaw(NamedTuple):
     Friction (`dynamics.friction`): the paper's (eq. 6b, 6c, 8b: the ring at rest, F_t = mu F_n +
     k_ZR F_zZ) or, with `co_rotating_ring` = 1, Coulomb friction on the slip against an inner ring
     spinning with the rotor, regularised below `slip_velocity` (m/s). The choice is static (pytree
-    aux data, registered below): a program holds one friction model, not both selected per sample,
-    which cost 38 % of stage 1's compilation and 25 % of its step (docs/calibration.md, "Cost").
+    aux data, registered below): a program holds one friction model, not both selected per sample
+    (both had cost stage 1 about 40 % of its compilation and a third of its step: docs/calibration.md,
+    "Cost").
     """
 
     stiffness_exponent: float = 1.0  # n
