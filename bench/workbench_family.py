@@ -7,11 +7,13 @@ guess), run `touchdown diagnose --coeffs`, and read its verdict: the candidate i
 "unexplained"), the margin to the second, the fitted parameters against the truth, and the
 held-out k-step prediction error of the baseline and with the named candidate.
 
-    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N]
+    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N] [-p NAME:=VALUE ...]
 
 --fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 10 since 2026-11-25); each call's wall
 time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
 as large (a sensor gain's deviation from 1): how large an effect must be for the gate to hold.
+-p NAME:=VALUE overrides a rig parameter in every `touchdown` call, as the command's own -p does (e.g.
+-p contact.friction:=co_rotating_ring).
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on beside the effects the rounds added
@@ -40,6 +42,7 @@ from typing import Callable, Mapping, NamedTuple
 import numpy as np
 import yaml
 
+from touchdown_ros.cli import _overrides
 from touchdown_ros.cli import main as touchdown
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.offline import force_rmse_against_truth
@@ -157,9 +160,9 @@ def fitted_effect(path: Path, effect: str) -> dict[str, float]:
     return {k: float(v) for k, v in document["effects"][effect]["parameters"].items()}
 
 
-def force_rmse(config_path: Path, coefficients: Path, bags: list[Path]) -> float:
+def force_rmse(config_path: Path, coefficients: Path, bags: list[Path], params: list[str] = ()) -> float:
     """N, contact force RMSE (norm over x, y, z) of the smoothed estimate against the truth, all bags."""
-    return force_rmse_against_truth(load_config(config_path), coefficients, bags)
+    return force_rmse_against_truth(load_config(config_path, _overrides(params)), coefficients, bags)
 
 
 def _relative_errors(fitted: Mapping[str, float], truth: Mapping[str, float]) -> dict[str, float]:
@@ -176,17 +179,19 @@ def _second(verdict: dict) -> str | None:
     return next((n for n in names if n != first), None)
 
 
-def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
+def run_case(case: Case, out: Path, fit: int | None = None, params: list[str] = ()) -> dict:
     """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
     true effect switched on; the figures of its row."""
     started = time.perf_counter()
     shutil.rmtree(out, ignore_errors=True)
     bags, rig, truths = simulate(case, out)
     log = io.StringIO()
+    overrides = [a for p in params for a in ("-p", p)]
 
     def train(path: Path, effects: list[str]) -> Path:
         active = ["-p", f"effects.active:=[{','.join(effects)}]"] if effects else []
-        _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *active], log)
+        _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *overrides, *active],
+             log)
         return path
 
     # The workbench's loop as a user runs it: diagnose; when it names an effect, add it and
@@ -200,7 +205,7 @@ def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
         diagnosis = out / f"diagnosis_{round_}"
         diagnose_started = time.perf_counter()
         _run(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out",
-              str(diagnosis), *fit_option], log)
+              str(diagnosis), *fit_option, *overrides], log)
         diagnose_seconds.append(round(time.perf_counter() - diagnose_started, 1))
         verdict = json.loads((diagnosis / "diagnosis.json").read_text())["models"][0]["verdict"]
         verdicts.append(verdict)
@@ -218,12 +223,12 @@ def run_case(case: Case, out: Path, fit: int | None = None) -> dict:
     before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_m"])
     after = np.asarray(judged["held_out_k_step_rmse_m"]) if judged else before
     k_step_ratio = float(np.linalg.norm(after[axes]) / np.linalg.norm(before[axes]))
-    force_before = force_rmse(rig, calibrated, bags)
+    force_before = force_rmse(rig, calibrated, bags, params)
     trained, alone, force_after = {}, {}, force_before
     if case.effect:
         with_effect = train(out / "with_effect.yaml", [*added, case.effect])
         trained = case.identifiable(fitted_effect(with_effect, case.effect))
-        force_after = force_rmse(rig, with_effect, bags)
+        force_after = force_rmse(rig, with_effect, bags, params)
         if added:  # what the effects added first take from it: stage 1 with the hidden effect alone
             alone = case.identifiable(fitted_effect(train(out / "with_effect_alone.yaml", [case.effect]), case.effect))
     (out / "log.txt").write_text(log.getvalue())
@@ -322,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
         help="passed to every `touchdown diagnose` call: fit FROLS's best N candidates (default: diagnose's own)",
     )
     parser.add_argument("--scale", type=float, default=None, help="each chosen hidden effect this many times as large")
+    parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a rig parameter override passed to every touchdown call")
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
@@ -334,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in chosen:
-        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit)
+        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit, args.param)
         rows.append(row)
         seconds = f"{row['seconds']} s, diagnose {row['diagnose_seconds']} s"
         print(f"{case.name} on {case.rig}: {row['verdict'][:120]} ({seconds})", file=sys.stderr, flush=True)

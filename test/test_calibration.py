@@ -18,6 +18,7 @@ from touchdown_ros.core.calibration import (
     information_standard_errors,
     strongest_correlations,
 )
+from touchdown_ros.core.diagnostics.regressors import force_equivalent
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.types import ContactLaw, Nominal
 from touchdown_ros.io.config import load_config
@@ -281,8 +282,8 @@ def test_stage1_scales_move_each_effect_by_the_rotor_weight_where_it_acts():
         effect, values = effects.effects[i], effects.params[i]
         step = 1e-6 * values[name]
         moved = np.array([
-            np.asarray(effect.function(jnp.asarray(xi), {**values, name: values[name] + step}, rig))
-            - np.asarray(effect.function(jnp.asarray(xi), values, rig))
+            np.asarray(force_equivalent(effect, jnp.asarray(xi), {**values, name: values[name] + step}, model, None))
+            - np.asarray(force_equivalent(effect, jnp.asarray(xi), values, model, None))
             for xi in states
         ]) / step
         assert scales.params[i][name] == pytest.approx(weight / np.sqrt(np.mean(np.sum(moved**2, axis=1))), rel=1e-4)

@@ -198,14 +198,16 @@ def test_axial_kernel_input_is_the_compression():
     np.testing.assert_allclose(float(contact_forces(make_model(coeffs), xi).F_z), k_Z * compression, rtol=1e-12)
 
 
-def hand_ring_forces(xi, v, rig=RIG, p=NOMINAL):
-    """F_n, F_t, F_z with Coulomb friction on the slip against a ring spinning at the rotor speed,
-    written out: the slip of the rotor centre is its velocity minus the ring's (omega x position)."""
+def hand_ring_forces(xi, v, rig=RIG, p=NOMINAL, speed=None):
+    """F_n, F_t, F_z with Coulomb friction on the slip against a ring spinning at the rotor speed
+    (`speed`, rad/s, default the rig's), written out: the slip of the rotor centre is its velocity
+    minus the ring's (omega x position)."""
+    omega = rig.speed if speed is None else speed
     x, y, z, _, xd, yd, zd = (float(v_) for v_ in xi)
     r = math.hypot(x, y)
     n = (x / r, y / r)
     t = (-n[1], n[0])  # anticlockwise, the rotor's sense of rotation
-    u = (xd + rig.speed * y, yd - rig.speed * x)  # centre velocity minus the ring's velocity there
+    u = (xd + omega * y, yd - omega * x)  # centre velocity minus the ring's velocity there
     u_n, u_t = u[0] * n[0] + u[1] * n[1], u[0] * t[0] + u[1] * t[1]
     F_nR = p.k_R * (r - rig.radial_clearance) + p.c_R * (xd * n[0] + yd * n[1]) if r > rig.radial_clearance else 0.0
     F_zZ = -p.k_Z * (z + rig.axial_clearance) - p.c_Z * zd if z < -rig.axial_clearance else 0.0
@@ -234,6 +236,31 @@ def test_co_rotating_ring_friction_opposes_the_slip_against_the_spinning_ring(ca
     rolling[4:6] = (-RIG.speed * y, RIG.speed * x)
     rolling[6] = 0.0
     assert float(contact_forces(ring, jnp.asarray(rolling)).F_t) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("case", ["radial", "both"])
+def test_a_braked_rotor_slips_against_the_ring_at_its_own_speed(case):
+    """A speed effect (brake_decay) sets the speed of the ring the rotor slips on, omega (1 - rate t)
+    with t = theta / omega, and the unbalance: m e omega_t^2 at the lagging angle in phi."""
+    from touchdown_ros.core.dynamics import phi
+    from touchdown_ros.core.effects import LIBRARY, Effects
+
+    xi = np.array(CASES[case])
+    xi[3] = 0.1 * RIG.speed  # 0.1 s after the onset: the rotor at 0.92 of its speed
+    rate, t = 0.8, xi[3] / RIG.speed
+    ring = make_model()._replace(law=make_model().law.with_friction("co_rotating_ring", 0.02))
+    braked = ring._replace(effects=Effects((LIBRARY["brake_decay"],), ({"rate": rate},)))
+    forces = contact_forces(braked, jnp.asarray(xi))
+    got = np.array([forces.F_n, forces.F_t, forces.F_z], dtype=float)
+    omega_t = RIG.speed * (1.0 - rate * t)
+    np.testing.assert_allclose(got, hand_ring_forces(xi, 0.02, speed=omega_t), rtol=1e-10)
+    assert not np.allclose(got, hand_ring_forces(xi, 0.02), rtol=1e-3)  # not the constant speed's
+    angle = xi[3] - 0.5 * rate * RIG.speed * t * t
+    unbalance = RIG.eccentricity * omega_t**2 * np.array([np.cos(angle), np.sin(angle)])
+    c = contact_forces(braked, jnp.asarray(xi))
+    expected = np.array([c.F_x, c.F_y]) / RIG.mass + unbalance
+    np.testing.assert_allclose(np.asarray(phi(braked, jnp.asarray(xi)))[4:6], expected, rtol=1e-12)
+    assert float(phi(braked, jnp.asarray(xi))[3]) == RIG.speed  # theta stays the clock
 
 
 def test_friction_model_is_static_in_a_compiled_program():

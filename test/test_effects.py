@@ -142,19 +142,25 @@ def test_gates_follow_the_recorded_conditions():
 
 
 def test_brake_decay_gives_the_braked_rotors_unbalance_with_its_lagging_angle():
-    """With the model's unbalance m e omega^2 (cos, sin) theta at theta = omega t, the effect makes it
-    m e omega_t^2 (cos, sin) phi: the speed omega_t = omega (1 - rate t), the angle phi its integral."""
-    rig = load_config().rig
-    effect, me, omega = fx.LIBRARY["brake_decay"], rig.mass * rig.eccentricity, rig.speed
+    """brake_decay is a speed effect: with the model's angle theta = omega t it gives the speed
+    omega_t = omega (1 - rate t) and the angle phi, its integral; phi's unbalance is then
+    m e omega_t^2 (cos, sin) phi, and at rate 0 the constant speed's, exactly."""
+    config = load_config()
+    rig = config.rig
+    effect, e, omega = fx.LIBRARY["brake_decay"], rig.eccentricity, rig.speed
+    assert effect.kind == fx.SPEED
+    braked = config.model(effects=fx.Effects((effect,), ({"rate": 0.8},)))
+    still = config.model(effects=fx.Effects((effect,), ({"rate": 0.0},)))
     for t in (0.0, 0.02, 0.15):
         theta = omega * t
-        xi = jnp.array([0.0, 0.0, 0.0, theta, 0.0, 0.0, 0.0])
-        model = me * omega**2 * np.array([np.cos(theta), np.sin(theta), 0.0])
-        np.testing.assert_allclose(effect.function(xi, {"rate": 0.0}, rig), 0.0, atol=1e-9)
-        braked = np.asarray(effect.function(xi, {"rate": 0.8}, rig)) + model
-        w, phi = omega * (1.0 - 0.8 * t), omega * (t - 0.4 * t * t)
-        expected = me * w * w * np.array([np.cos(phi), np.sin(phi), 0.0])
-        np.testing.assert_allclose(braked, expected, atol=1e-6 * me * omega**2)
+        xi = jnp.array([0.0, 0.0, 0.0, theta, 0.0, 0.0, 0.0])  # centred, free: the unbalance alone acts
+        w, angle = omega * (1.0 - 0.8 * t), omega * (t - 0.4 * t * t)
+        np.testing.assert_allclose(np.asarray(effect.function(xi, {"rate": 0.8}, rig)), [w, angle], rtol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(phi(braked, xi))[4:6], e * w * w * np.array([np.cos(angle), np.sin(angle)]),
+            rtol=1e-9, atol=1e-12 * e * omega**2,
+        )
+        np.testing.assert_array_equal(np.asarray(phi(still, xi)), np.asarray(phi(config.model(), xi)))
 
 
 def _nested_force_equivalent(effect, model, xi, params):
@@ -170,6 +176,25 @@ def _nested_force_equivalent(effect, model, xi, params):
     change_velocity, change_acceleration = jax.jvp(change_rate, (xi,), (rate(xi),))
     shift = jnp.concatenate([change, jnp.zeros(1), change_velocity])
     return model.rig.mass * (change_acceleration - jax.jvp(lambda s: rate(s)[4:], (xi,), (shift,))[1])
+
+
+def _speed_force(effect, model, xi, params):
+    """A speed effect's force with the paper's friction, written out: the change of the unbalance force
+    m e (omega^2 (cos, sin) angle - Omega^2 (cos, sin) theta), omega and angle from the effect."""
+    rig = model.rig
+    omega, angle = effect.function(xi, params, rig)
+    me = rig.mass * rig.eccentricity
+    return jnp.stack([me * (omega**2 * jnp.cos(angle) - rig.speed**2 * jnp.cos(xi[3])),
+                      me * (omega**2 * jnp.sin(angle) - rig.speed**2 * jnp.sin(xi[3])), 0.0 * xi[3]])
+
+
+def _defined_force(effect, model, xi, params):
+    """The force each kind of effect stands for, by its definition."""
+    if effect.kind == fx.MEASUREMENT:
+        return _nested_force_equivalent(effect, model, xi, params)
+    if effect.kind == fx.SPEED:
+        return _speed_force(effect, model, xi, params)
+    return effect.function(xi, params, model.rig)
 
 
 @fx.effect("z_curvature", {"a": (3.0e3, "1/m", "sensor reads z + a x^2")}, kind=fx.MEASUREMENT)
@@ -189,7 +214,7 @@ def test_library_regressors_share_phi_and_equal_the_nested_definition():
         [1.5e-4, 1.6e-4, -1e-4, 1.1, 0.03, -0.01, 0.02],  # radial contact
         [-2.0e-4, 0.9e-4, -3.1e-4, 4.0, -0.04, 0.03, 0.01],  # both contacts
     ])
-    effects = {name: fx.LIBRARY[name] for name in ("sensor_gain_x", "sensor_offset_z", "axial_load")}
+    effects = {name: fx.LIBRARY[name] for name in ("sensor_gain_x", "sensor_offset_z", "axial_load", "brake_decay")}
     effects["z_curvature"] = _z_curvature
     together = library_regressors(effects, states, model)
     for name, effect in effects.items():
@@ -198,11 +223,9 @@ def test_library_regressors_share_phi_and_equal_the_nested_definition():
         alone = effect_regressors(effect, states, model)
         np.testing.assert_allclose(np.asarray(J), np.asarray(alone[0]), rtol=1e-12, atol=0)
         for i, xi in enumerate(states):
-            expected = _nested_force_equivalent(effect, model, xi, params) if effect.kind != fx.FORCE else \
-                effect.function(xi, params, model.rig)
+            expected = _defined_force(effect, model, xi, params)
             np.testing.assert_allclose(np.asarray(f0[i]), np.asarray(expected), rtol=1e-9, atol=1e-9)
-            jac = jax.jacfwd(lambda p: _nested_force_equivalent(effect, model, xi, p) if effect.kind != fx.FORCE
-                             else effect.function(xi, p, model.rig))(params)
+            jac = jax.jacfwd(lambda p: _defined_force(effect, model, xi, p))(params)
             expected_J = np.stack([np.asarray(jac[k]) for k in params], axis=-1)
             np.testing.assert_allclose(np.asarray(J[i]), expected_J, rtol=1e-9, atol=1e-9)
     assert np.abs(np.asarray(together["z_curvature"][1])).max() > 0.0

@@ -13,9 +13,9 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from touchdown_ros.core.effects import FORCE, MEASUREMENT
+from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
-from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model, Rig
+from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
 
 
 def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -50,13 +50,13 @@ def yielding_support(law: ContactLaw, force: Array) -> Array:
 
 
 def friction(
-    law: ContactLaw, rig: Rig, mu: Array, k_ZR: Array, F_nR: Array, F_zZ: Array,
+    law: ContactLaw, speed: Array, mu: Array, k_ZR: Array, F_nR: Array, F_zZ: Array,
     r: Array, rdot: Array, whirl: Array, zdot: Array,
 ) -> tuple[Array, Array, Array]:
     """F_n, F_t, F_z (N) from the normal forces F_nR (bore) and F_zZ (face) and the friction.
 
     The paper's (the inner ring at rest): F_t = mu F_nR + k_ZR F_zZ (eq. 6b, 8b), F_zR = -mu
-    sign(zdot) F_nR (eq. 6c). Against a ring spinning with the rotor (speed omega), the rotor
+    sign(zdot) F_nR (eq. 6c). Against a ring spinning with the rotor (its speed omega, rad/s), the rotor
     slides on it at u = centre velocity - omega x centre position: tangentially at
     s_t = whirl - omega r, radially at rdot, axially at zdot. Coulomb friction opposes that slip
     with mu F_nR in the bore (on (s_t, zdot)) and k_ZR F_zZ on the face (on (s_t, rdot)),
@@ -65,7 +65,7 @@ def friction(
     if law.friction == "paper":  # static: the law's friction model is pytree aux data
         return F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR
     v = law.slip_velocity
-    slip_t = whirl - rig.speed * r
+    slip_t = whirl - speed * r
     bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
     face = k_ZR * F_zZ / jnp.sqrt(slip_t**2 + rdot**2 + v**2)
     return F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot
@@ -90,7 +90,7 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     F_zZ = normal_force(model.law, k_Z, c_Z, axial_deformation, -zdot)  # eq. 8c: -k_Z (z + z0) - c_Z zdot
     F_zZ = yielding_support(model.law, F_zZ)
     whirl = cos_a * ydot - sin_a * xdot  # m/s, centre velocity along the anticlockwise tangent
-    F_n, F_t, F_z = friction(model.law, rig, mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot)
+    F_n, F_t, F_z = friction(model.law, rotor_speed(model, xi)[0], mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot)
     return ContactForces(
         F_n=F_n,
         F_t=F_t,
@@ -126,12 +126,35 @@ def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces,
     return forces, jacobian
 
 
+def rotor_speed(model: Model, xi: Array) -> tuple[Array, Array]:
+    """The rotor's speed (rad/s) and its unbalance's angle (rad) at xi: the rig's constant speed and
+    theta (eq. 12), unless speed effects move them (static: without, the paper's model unchanged)."""
+    effects = getattr(model, "effects", None)
+    if effects and effects.acts_on(SPEED):
+        return effects.speed(xi, model.rig)
+    return jnp.asarray(model.rig.speed, dtype=xi.dtype), xi[THETA]
+
+
+def unbalance_change(model: Model, xi: Array) -> Array:
+    """(3,) N: how much the speed effects move the unbalance force m e omega^2 (cos, sin) angle from the
+    constant speed's at xi (zero without speed effects)."""
+    rig = model.rig
+    omega, angle = rotor_speed(model, xi)
+    me = rig.mass * rig.eccentricity
+    return jnp.stack([
+        me * (omega**2 * jnp.cos(angle) - rig.speed**2 * jnp.cos(xi[THETA])),
+        me * (omega**2 * jnp.sin(angle) - rig.speed**2 * jnp.sin(xi[THETA])),
+        jnp.zeros((), xi.dtype),
+    ])
+
+
 def phi(model: Model, xi: Array) -> Array:
-    """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]."""
+    """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]; the unbalance turns at
+    `rotor_speed` (the rig's constant speed unless a speed effect moves it)."""
     rig = model.rig
     forces = contact_forces(model, xi)
-    unbalance = rig.eccentricity * rig.speed**2
-    theta = xi[THETA]
+    speed, theta = rotor_speed(model, xi)
+    unbalance = rig.eccentricity * speed**2
     F_x, F_y, F_z = forces.F_x, forces.F_y, forces.F_z
     effects = getattr(model, "effects", None)
     if effects and effects.acts_on(FORCE):  # static: no force effects -> the paper's phi, unchanged

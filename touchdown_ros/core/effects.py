@@ -7,7 +7,11 @@ parameters and ``rig`` the `Rig`. Its `kind` says where it acts:
 - ``"force"``: the force on the rotor in N along the sensor x, y, z axes;
   `dynamics.phi` adds sum(forces) / m to the accelerations;
 - ``"measurement"``: the change of the sensor's output in m; the measurement model is
-  h(xi) = (x, y, z) + sum(changes) (`dynamics.measurement`), used by the EKF's update.
+  h(xi) = (x, y, z) + sum(changes) (`dynamics.measurement`), used by the EKF's update;
+- ``"speed"``: the rotor's speed omega (rad/s) and its unbalance's angle (rad), (2,), where the
+  model holds the rig's constant speed and the angle theta = omega t; `dynamics.phi`'s unbalance
+  m e omega^2 (cos, sin) angle and the friction's slip against a co-rotating ring use them
+  (`dynamics.rotor_speed`). theta stays the clock: d theta / dt is the rig's speed.
 
 `Effects` is the JAX container held by `Model.effects`: the functions (and names) are
 static aux data, the parameter values are traced children, so jit/grad/vmap see the
@@ -15,9 +19,9 @@ parameters and a change of which effects are active recompiles. With no effects
 (the default) phi and h are the paper's model unchanged, at the same cost.
 
 Library (`LIBRARY`): force effects axial_load, radial_load, magnetic_stiffness,
-cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupling, brake_decay; measurement
+cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupling; measurement
 effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
-gain * position + offset on that axis.
+gain * position + offset on that axis; the speed effect brake_decay (a braked rotor).
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
@@ -42,14 +46,15 @@ X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
 
 EffectFunction = Callable[[Array, Mapping[str, Array], object], Array]
 ENTRY_POINT_GROUP = "touchdown_ros.effects"
-FORCE, MEASUREMENT = "force", "measurement"
-KINDS = (FORCE, MEASUREMENT)
+FORCE, MEASUREMENT, SPEED = "force", "measurement", "speed"
+KINDS = (FORCE, MEASUREMENT, SPEED)
 
 
 @dataclass(frozen=True)
 class Effect:
     """A named term with named physical parameters (name -> (default, unit, description)): a force
-    on the rotor (N) or a change of the sensor output (m), by `kind`; `bounds` (name -> (low, high),
+    on the rotor (N), a change of the sensor output (m) or the rotor's speed and unbalance angle
+    (rad/s, rad), by `kind`; `bounds` (name -> (low, high),
     in the parameter's unit) keeps a fitted parameter where it means something (a drag is never
     negative)."""
 
@@ -166,6 +171,17 @@ class Effects:
         """Sum of the active measurement effects' changes of the sensor output (3,), m, each times its gate."""
         return self._sum(MEASUREMENT, xi, rig)
 
+    def speed(self, xi: Array, rig) -> tuple[Array, Array]:
+        """(omega, angle): the rotor's speed (rad/s) and its unbalance's angle (rad) at xi, the rig's
+        constant speed and theta moved by each active speed effect times its gate."""
+        omega, angle = jnp.asarray(rig.speed, xi.dtype), xi[THETA]
+        for e, p, gate in zip(self.effects, self.params, self.gates):
+            if e.kind == SPEED:
+                moved = jnp.asarray(e.function(xi, p, rig), dtype=xi.dtype)
+                omega = omega + gate * (moved[0] - rig.speed)
+                angle = angle + gate * (moved[1] - xi[THETA])
+        return omega, angle
+
 
 def gates_for(effects: Effects, conditions: Mapping[str, str]) -> tuple[float, ...]:
     """1.0 for an effect that acts in a bag with these conditions, else 0.0: an effect with a
@@ -228,22 +244,15 @@ def _contact_angle_coupling(xi, p, rig):
 
 
 def _brake_decay(xi, p, rig):
-    """Unbalance correction for a braked rotor: speed omega (1 - rate t), t = theta / omega.
+    """A braked rotor: speed omega_t = omega (1 - rate t) from the drop onset, t = theta / omega.
 
-    The model's unbalance is m e omega^2 (cos, sin) theta, at the constant speed omega; the braked
-    rotor's unbalance is m e omega_t^2 (cos, sin) phi, its angle phi = theta - rate omega t^2 / 2
-    lagging the model's (by 4.5 rad after 0.15 s at 0.77 1/s and 5000 rpm). This adds the difference.
+    Its unbalance turns at that speed, m e omega_t^2 (cos, sin) phi, the angle phi = theta - rate
+    omega t^2 / 2 lagging the model's (by 4.5 rad after 0.15 s at 0.77 1/s and 5000 rpm), and a ring
+    spinning with the rotor slips against it at omega_t.
     """
     t = xi[THETA] / rig.speed
     w = rig.speed * jnp.maximum(1.0 - p["rate"] * t, 0.0)
-    phi = xi[THETA] - 0.5 * p["rate"] * rig.speed * t * t
-    me = rig.mass * rig.eccentricity
-    braked, constant = me * w * w, me * rig.speed**2
-    return jnp.stack([
-        braked * jnp.cos(phi) - constant * jnp.cos(xi[THETA]),
-        braked * jnp.sin(phi) - constant * jnp.sin(xi[THETA]),
-        0.0 * xi[Z],
-    ])
+    return jnp.stack([w, xi[THETA] - 0.5 * p["rate"] * rig.speed * t * t])
 
 
 def _sensor_error(axis: int, parameter: str, change: Callable[[Array, Array], Array]) -> EffectFunction:
@@ -311,7 +320,8 @@ LIBRARY: dict[str, Effect] = {
             _contact_angle_coupling.__doc__,
         ),
         Effect(
-            "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")}, _brake_decay.__doc__
+            "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")},
+            _brake_decay.__doc__, kind=SPEED,
         ),
         *(
             Effect(
@@ -368,7 +378,8 @@ def _lookup(spec: str) -> Effect:
 
 
 def regressors(effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None) -> Array:
-    """d function / d parameters at xi: (3, n_params), N (force) or m (measurement) per parameter unit."""
+    """d function / d parameters at xi: (3, n_params), N (force) or m (measurement) per parameter unit;
+    (2, n_params) for a speed effect (rad/s and rad per parameter unit)."""
     p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}
     jac = jax.jacfwd(lambda p: effect_.function(xi, p, rig))(p0)
     return jnp.stack([jac[k] for k in p0], axis=-1)

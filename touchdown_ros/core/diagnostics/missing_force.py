@@ -12,7 +12,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4
+from touchdown_ros.core.dynamics import contact_forces, phi, rk4, unbalance_change
 from touchdown_ros.core.ekf import (
     Belief,
     Transition,
@@ -21,6 +21,7 @@ from touchdown_ros.core.ekf import (
     rts_smoother,
     with_jacobian,
 )
+from touchdown_ros.core.effects import SPEED
 from touchdown_ros.core.types import STATE_SIZE, Model
 
 
@@ -47,11 +48,14 @@ def augmented_transition(model: Model, h: float) -> Transition:
 
 
 def model_force(model: Model, xi: Array) -> Array:
-    """(3,) N: the model's contact force plus its effects' forces on the rotor at xi."""
+    """(3,) N: the model's contact force plus its effects' forces on the rotor at xi (a speed effect's:
+    how it moves the unbalance force; the contact force already slips at its speed)."""
     c = contact_forces(model, xi)
     force = jnp.stack([c.F_x, c.F_y, c.F_z])
     if model.effects:
         force = force + model.effects.force(xi, model.rig)
+        if model.effects.acts_on(SPEED):
+            force = force + unbalance_change(model, xi)
     return force
 
 

@@ -1,5 +1,5 @@
 """Regressors along a trajectory: how the model's force moves with its PKBKR coefficients and with
-each candidate effect's parameters (a measurement effect enters by the force it stands for,
+each candidate effect's parameters (a measurement or speed effect enters by the force it stands for,
 `force_equivalent`), for the ranking of `frols` and the candidates' scales."""
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.diagnostics.missing_force import model_force
 from touchdown_ros.core.dynamics import phi
-from touchdown_ros.core.effects import FORCE, Effect
+from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
 from touchdown_ros.core.types import Model
 
 
@@ -41,8 +41,10 @@ def motion(model: Model, xi: Array) -> Motion:
     return Motion(phi(model, xi), jax.jacfwd(lambda s: phi(model, s))(xi))
 
 
-def force_equivalent(effect: Effect, xi: Array, params, rig, mass: float, at: Motion) -> Array:
-    """(3,) N: a measurement effect as the force it stands for at xi; a force effect's force as it is.
+def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion | None) -> Array:
+    """(3,) N: a measurement effect as the force it stands for at xi; a force effect's force as it is;
+    a speed effect's as the change of the model's force on the rotor it makes, m (phi with it - phi
+    without it) in the accelerations (the unbalance and, against a co-rotating ring, the friction).
 
     A measurement effect that changes the sensor output by D(xi) (m) makes a model without it
     follow the state xi + (D, 0, dD/dt), whose motion needs the extra force (first order in D)
@@ -51,8 +53,14 @@ def force_equivalent(effect: Effect, xi: Array, params, rig, mass: float, at: Mo
     second derivatives). E.g. a z gain g in free flight: the constant -(g - 1) m g_0; a z offset:
     zero in free flight, the contact stiffness times it in contact.
     """
+    rig, mass = model.rig, model.rig.mass
     if effect.kind == FORCE:
         return jnp.asarray(effect.function(xi, params, rig), xi.dtype)
+    if effect.kind == SPEED:
+        def acceleration(effects: Effects) -> Array:
+            return phi(model._replace(effects=effects), xi)[4:]
+
+        return mass * (acceleration(Effects((effect,), (params,))) - acceleration(Effects()))
 
     def change(state: Array) -> Array:
         return jnp.asarray(effect.function(state, params, rig), xi.dtype)
@@ -82,8 +90,7 @@ def library_regressors(
     """`effect_regressors` of several effects at once, name -> (J (N, 3, p), f0 (N, 3)): the model's
     rate and its Jacobian along the states (`motion`) are computed once for all measurement effects."""
     states = jnp.asarray(states)
-    rig, mass = model.rig, model.rig.mass
-    measuring = any(e.kind != FORCE for e in effects.values())
+    measuring = any(e.kind == MEASUREMENT for e in effects.values())
     motions = jax.vmap(lambda xi: motion(model, xi))(states) if measuring else None
     out = {}
     for name, effect in effects.items():
@@ -92,10 +99,10 @@ def library_regressors(
         names = list(params)
 
         def force(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
-            return force_equivalent(e, xi, p, rig, mass, at)
+            return force_equivalent(e, xi, p, model, at)
 
         def jacobian(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
-            J = jax.jacfwd(lambda q: force_equivalent(e, xi, q, rig, mass, at))(p)
+            J = jax.jacfwd(lambda q: force_equivalent(e, xi, q, model, at))(p)
             return jnp.stack([J[k] for k in names], axis=-1)
 
         out[name] = (jax.vmap(jacobian)(states, motions), jax.vmap(force)(states, motions))
