@@ -275,9 +275,9 @@ class Coordinates:
         return np.asarray(ravel_pytree(theta)[0], dtype=float)[self.free]
 
     def theta(self, x: np.ndarray) -> Stage1:
-        """The `Stage1` with the free coordinates x and the others from the start (numpy leaves: built
-        on the host, not by a JAX operation per leaf as `ravel_pytree`'s unravel does, which took
-        about 20 ms a call in an optimiser's loop)."""
+        """The `Stage1` with the free coordinates x and the others from the start (numpy leaves, built
+        on the host: `ravel_pytree`'s unravel runs a JAX operation per leaf, 0.77 ms against 0.08 ms a
+        call for 13 coordinates)."""
         full = self.start.copy()
         full[self.free] = x
         parts = np.split(full, self._splits)

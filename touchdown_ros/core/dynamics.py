@@ -153,7 +153,7 @@ def phi(model: Model, xi: Array) -> Array:
     `rotor_speed` (the rig's constant speed unless a speed effect moves it)."""
     rig = model.rig
     forces = contact_forces(model, xi)
-    speed, theta = rotor_speed(model, xi)
+    speed, angle = rotor_speed(model, xi)
     unbalance = rig.eccentricity * speed**2
     F_x, F_y, F_z = forces.F_x, forces.F_y, forces.F_z
     effects = getattr(model, "effects", None)
@@ -166,8 +166,8 @@ def phi(model: Model, xi: Array) -> Array:
             xi[YDOT],
             xi[ZDOT],
             jnp.asarray(rig.speed, dtype=xi.dtype),
-            F_x / rig.mass + unbalance * jnp.cos(theta),
-            F_y / rig.mass + unbalance * jnp.sin(theta),
+            F_x / rig.mass + unbalance * jnp.cos(angle),
+            F_y / rig.mass + unbalance * jnp.sin(angle),
             F_z / rig.mass - rig.gravity,
         ]
     )

@@ -54,9 +54,8 @@ KINDS = (FORCE, MEASUREMENT, SPEED)
 class Effect:
     """A named term with named physical parameters (name -> (default, unit, description)): a force
     on the rotor (N), a change of the sensor output (m) or the rotor's speed and unbalance angle
-    (rad/s, rad), by `kind`; `bounds` (name -> (low, high),
-    in the parameter's unit) keeps a fitted parameter where it means something (a drag is never
-    negative)."""
+    (rad/s, rad), by `kind`; `bounds` (name -> (low, high), in the parameter's unit) keeps a fitted
+    parameter where it means something (a drag is never negative)."""
 
     name: str
     function: EffectFunction
