@@ -95,14 +95,18 @@ def main() -> int:
         results = in_turn(cases, args.runs)
     print_table(results, "run")
     if args.against is not None:
-        ours = results["stage 1 + stage 2 (defaults), cold cache"]
-        theirs = results[f"{args.against}: defaults, cold cache"]
-        for key in ("seconds", "cpu_seconds"):
-            pairs = [a[key] / b[key] for a, b in zip(ours, theirs) if a.get(key) and b.get(key)]
-            if pairs:
-                print(f"{key}: this / {args.against}, run by run {', '.join(f'{r:.2f}' for r in pairs)}; "
-                      f"median {statistics.median(pairs):.2f}")
+        print_ratios(results["stage 1 + stage 2 (defaults), cold cache"],
+                     results[f"{args.against}: defaults, cold cache"], args.against)
     return 0
+
+
+def print_ratios(ours: list[dict], theirs: list[dict], other: object, case: str = "") -> None:
+    """Wall and CPU time of each of our runs over the other checkout's run in the same turn, and their median."""
+    for key in ("seconds", "cpu_seconds"):
+        pairs = [a[key] / b[key] for a, b in zip(ours, theirs) if a.get(key) and b.get(key)]
+        if pairs:
+            print(f"{case}{key}: this / {other}, run by run {', '.join(f'{r:.2f}' for r in pairs)}; "
+                  f"median {statistics.median(pairs):.2f}")
 
 
 def scaled_guess(factor: float) -> list[str]:

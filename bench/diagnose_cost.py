@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from calibration_cost import in_turn, print_table, timed
+from calibration_cost import in_turn, print_ratios, print_table, timed
 
 
 def main() -> int:
@@ -65,12 +65,7 @@ def main() -> int:
     print_table(results, "diagnose, 2 bags x 0.15 s")
     if args.against is not None:
         for name in [n for n in results if not n.startswith(f"{args.against}: ")]:
-            ours, theirs = results[name], results[f"{args.against}: {name}"]
-            pairs = [a["seconds"] / b["seconds"] for a, b in zip(ours, theirs)]
-            cpu = [a["cpu_seconds"] / b["cpu_seconds"] for a, b in zip(ours, theirs)
-                   if a.get("cpu_seconds") and b.get("cpu_seconds")]
-            print(f"{name}: this / {args.against}: wall {', '.join(f'{r:.2f}' for r in pairs)}; "
-                  f"CPU {', '.join(f'{r:.2f}' for r in cpu)}")
+            print_ratios(results[name], results[f"{args.against}: {name}"], args.against, case=f"{name}: ")
     return 0
 
 

@@ -42,8 +42,8 @@ from typing import Callable, Mapping, NamedTuple
 import numpy as np
 import yaml
 
-from touchdown_ros.cli import _overrides
 from touchdown_ros.cli import main as touchdown
+from touchdown_ros.cli import parameter_overrides
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.offline import force_rmse_against_truth
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
@@ -162,7 +162,7 @@ def fitted_effect(path: Path, effect: str) -> dict[str, float]:
 
 def force_rmse(config_path: Path, coefficients: Path, bags: list[Path], params: list[str] = ()) -> float:
     """N, contact force RMSE (norm over x, y, z) of the smoothed estimate against the truth, all bags."""
-    return force_rmse_against_truth(load_config(config_path, _overrides(params)), coefficients, bags)
+    return force_rmse_against_truth(load_config(config_path, parameter_overrides(params)), coefficients, bags)
 
 
 def _relative_errors(fitted: Mapping[str, float], truth: Mapping[str, float]) -> dict[str, float]:

@@ -47,10 +47,10 @@ def _parameter(text: str) -> tuple[str, object]:
 
 def _config(args: argparse.Namespace) -> Config:
     """The rig of --config with the -p overrides."""
-    return load_config(args.config, _overrides(args.param))
+    return load_config(args.config, parameter_overrides(args.param))
 
 
-def _overrides(parameters: Sequence[str]) -> dict[str, object]:
+def parameter_overrides(parameters: Sequence[str]) -> dict[str, object]:
     """-p NAME:=VALUE options as the overrides of `load_config` (a later one of a name wins)."""
     return dict(_parameter(p) for p in parameters)
 
@@ -183,7 +183,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     commands = _commands()
     out: Path = args.out
     bags = out / "bags"
-    overrides = _overrides(args.param)
+    overrides = parameter_overrides(args.param)
     config = load_config(args.config, overrides)
     _simulated(commands.simulate_campaign(config, bags, [11] if args.quick else None, args.seed, overwrite=True), bags)
     all_bags = sorted(bags.glob("exp_*"))

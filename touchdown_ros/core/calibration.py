@@ -271,8 +271,7 @@ class Coordinates:
 
     def initial(self, **fields: Array) -> np.ndarray:
         """The free coordinates at the start, with the given `Stage1` fields replaced (e.g. log_f0=...)."""
-        theta = self._unravel(self.start)._replace(**fields)
-        return np.asarray(ravel_pytree(theta)[0], dtype=float)[self.free]
+        return self.flat(self._unravel(self.start)._replace(**fields))
 
     def theta(self, x: np.ndarray) -> Stage1:
         """The `Stage1` with the free coordinates x and the others from the start (numpy leaves, built
