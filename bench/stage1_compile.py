@@ -22,11 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from touchdown_ros.core.calibration import (
-    Q_NAMES,
     RIGID_LOG_SUPPORT,
-    Stage1,
-    apply_scales,
     log_nominal,
+    stage1_start,
     stage1_value_and_grad,
 )
 from touchdown_ros.io.config import load_config
@@ -51,8 +49,7 @@ def main() -> int:
         h, noise = config.sample_period, config.noise
         scales = start_scales(config.model(), noise, h, chunks)
         guess = jnp.asarray(log_nominal(config.nominal))
-        theta = Stage1(guess, jnp.zeros(len(Q_NAMES)), apply_scales(config.effects, scales, inverse=True),
-                       jnp.asarray(RIGID_LOG_SUPPORT))
+        theta = stage1_start(guess, config.effects, scales, jnp.asarray(RIGID_LOG_SUPPORT))
         arguments = (theta, guess, config.model(), noise, scales, batch)
         static = dict(prior_width=config.training.prior_width, h=h, kind=config.training.loss, mesh=record_mesh())
         start = time.perf_counter()

@@ -142,6 +142,13 @@ def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Eff
     )
 
 
+def stage1_start(log_f0: Array, effects: Effects, scales: Effects, log_support: Array | None = None) -> Stage1:
+    """Stage 1's coordinates at the start: ln f0 as given, Q as the YAML's (factors 1), the effects'
+    parameters over their scales, the support as given (None: the law's)."""
+    scaled = apply_scales(effects, scales, inverse=True)
+    return Stage1(jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support)
+
+
 def scaled_bounds(tree, scales: Effects) -> list[tuple[float, float]]:
     """(low, high) of every entry of ``ravel_pytree(tree)``, a tree holding scaled `Effects` (a
     `Stage1`, stage 2's trainable): an effect parameter's `Effect.bounds` over its scale, every

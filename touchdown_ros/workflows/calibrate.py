@@ -12,22 +12,21 @@ import numpy as np
 
 from touchdown_ros.core.calibration import (
     HELD_BY_PRIOR,
-    Q_NAMES,
     RIGID_LOG_SUPPORT,
     SUPPORT_NAMES,
     Coordinates,
     Stage1,
-    apply_scales,
     convert_guess,
     data_scales,
     effect_scales,
     filtered_states,
+    information_standard_errors,
     log_nominal,
     sensor_noise,
-    information_standard_errors,
     stage1_flags,
     stage1_information_over,
     stage1_model_and_noise,
+    stage1_start,
     stage1_value_and_grad_over,
     strongest_correlations,
 )
@@ -136,12 +135,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
     # support rigid (held) or yielding (free).
-    start = Stage1(
-        jnp.zeros(len(PARAMETER_NAMES)),
-        jnp.zeros(len(Q_NAMES)),
-        apply_scales(effects, scales, inverse=True),
-        jnp.asarray(RIGID_LOG_SUPPORT),
-    )
+    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(RIGID_LOG_SUPPORT))
     coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False))
 
     def law_model(law: ContactLaw) -> Model:

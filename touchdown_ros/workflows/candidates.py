@@ -22,6 +22,7 @@ from touchdown_ros.core.calibration import (
     stage1_flags,
     stage1_information_over,
     stage1_model_and_noise,
+    stage1_start,
     stage1_value_and_grad,
 )
 from touchdown_ros.core.selection import (
@@ -103,7 +104,7 @@ class _Problem:
         gates = [fx.gates_for(model.effects, c) for c in (data.conditions or ({},) * len(data.records))]
         batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=gates)
         self.batch = hold_out(batch, self.block, self.every)
-        self.start = Stage1(self.guess, jnp.zeros(2), apply_scales(self.effects, self.scales, inverse=True))
+        self.start = stage1_start(self.guess, self.effects, self.scales)
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
         # the most coordinates a fit frees: f0, the Q factors, the model's effects and the largest candidate
         own = sum(len(p) for p in model.effects.params)
