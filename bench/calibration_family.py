@@ -79,7 +79,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "force_rmse_percent_of_peak": 100.0 * force_rmse / peak,
         "displacement_rmse_over_noise": float(np.sqrt(np.nanmean((position - measured) ** 2)) / noise_rms),
         "velocity_band_coverage_percent": _coverage(
-            np.asarray(smoothed.state)[:, 4:], np.asarray(smoothed.state_cov)[:, 4:, 4:], truth.velocity
+            np.asarray(smoothed.state)[:, 4:7], np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
         "force_band_coverage_percent": _coverage(
             force, None if force_cov is None else np.asarray(force_cov), true_force

@@ -1,10 +1,12 @@
 """EKF cost per sample: JAX per call, JAX inside lax.scan, the live node's chunk, and filterpy.
 
 All filter the same 1500-sample touchdown record with the same PKBKR model
-(reference rig, random but fixed alpha). Medians of repeated runs, side by side in
-one process. The JAX rows are measured twice, each in a child process: with XLA's
-default CPU runtime and with the small-loop option that importing `touchdown_ros.core`
-sets (`core.xla`: the whole scan compiled into one function).
+(reference rig, random but fixed alpha; `--friction spinning_ring`: the ring's speed as an
+eighth state). Medians of repeated runs, side by side in one process. The JAX rows are
+measured three times, each in a child process: with XLA's default CPU runtime, with the
+small-loop option (`core.xla`: the whole scan compiled into one function), and with that and
+the small matrix products kept inline (`core.xla.LIBRARY_DOT_OPTIONS`), as importing
+`touchdown_ros.core` sets both.
 `lax.scan(..., unroll=k)` rows show what unrolling the loop gives.
 Run: `make bench` or `.venv/bin/python bench/ekf_cost.py`.
 """
@@ -25,7 +27,7 @@ import numpy as np
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.ekf import Belief, ekf, ekf_step
 from touchdown_ros.core.streaming import chunk_buffer, flat_belief, make_chunk_filter
-from touchdown_ros.core.xla import SMALL_LOOP_OPTION, with_small_loop_flag
+from touchdown_ros.core.xla import LIBRARY_DOT_OPTIONS, SMALL_LOOP_OPTION, with_options, with_small_loop_flag
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.config import load_config
 
@@ -34,7 +36,7 @@ from numpy_ekf import filterpy_innovations  # bench/numpy_ekf.py
 
 def make_data(model, h, n, seed=0):
     step = jax.jit(lambda s: rk4_step(model, s, h / 10))
-    xi = jnp.array([2e-6, -1e-6, 0.0, 0.0, 0.0, 0.0, 0.0])
+    xi = jnp.zeros(model.law.state_size).at[:2].set([2e-6, -1e-6])
     states = []
     for _ in range(n):
         for _ in range(10):
@@ -98,15 +100,15 @@ def jax_rows(model, noise, h, etas, initial, repeats, unrolls) -> dict[str, floa
     return rows
 
 
-def setup(samples: int):
-    config = load_config()
+def setup(samples: int, friction: str = "paper"):
+    config = load_config(overrides={"contact.friction": friction})
     rng = np.random.default_rng(1)
     zeros = Coefficients.zeros(config.kernel)
     coeffs = Coefficients(0.1 * rng.standard_normal(zeros.alpha_R.shape),
                           0.1 * rng.standard_normal(zeros.alpha_Z.shape))
     model, noise, h = config.model(coeffs), config.noise, config.sample_period
     etas = make_data(model, h, samples)
-    initial = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(4)])), jnp.diag(noise.initial))
+    initial = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(len(noise.initial) - 3)])), jnp.diag(noise.initial))
     return model, noise, h, etas, initial
 
 
@@ -116,35 +118,47 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--baseline-samples", type=int, default=300, help="filterpy is slow: time it on fewer samples")
     parser.add_argument("--unroll", type=int, nargs="*", default=[2, 4, 8], help="lax.scan unroll factors to time")
-    parser.add_argument("--jax-only", action="store_true", help="print the JAX rows as JSON (for the second process)")
+    parser.add_argument("--friction", default="paper", help="contact.friction (spinning_ring: an eighth state)")
+    parser.add_argument("--jax-only", action="store_true", help="print the JAX rows as JSON (for the child processes)")
     args = parser.parse_args()
 
-    model, noise, h, etas, initial = setup(args.samples)
+    model, noise, h, etas, initial = setup(args.samples, args.friction)
     if args.jax_only:
         print(json.dumps(jax_rows(model, noise, h, etas, initial, args.repeats, args.unroll)))
         return
     child = [sys.executable, __file__, "--jax-only", "--samples", str(args.samples), "--repeats", str(args.repeats),
-             "--unroll", *map(str, args.unroll)]
-    # importing touchdown_ros.core raises the option unless XLA_FLAGS already names it
-    xla_default = f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024"
-    env_default = dict(os.environ, XLA_FLAGS=xla_default)
-    env_small = dict(os.environ, XLA_FLAGS=with_small_loop_flag(""))
-    default = json.loads(subprocess.run(child, env=env_default, check=True, capture_output=True, text=True).stdout)
-    small = json.loads(subprocess.run(child, env=env_small, check=True, capture_output=True, text=True).stdout)
+             "--friction", args.friction, "--unroll", *map(str, args.unroll)]
+    # importing touchdown_ros.core sets each option unless XLA_FLAGS already names it
+    library_dots = " --xla_cpu_experimental_ynn_fusion_type=individual_dot"
+    flags = {
+        "default": f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024" + library_dots,
+        "small": with_small_loop_flag("") + library_dots,
+        "inline": with_options(with_small_loop_flag(""), LIBRARY_DOT_OPTIONS),
+    }
+
+    def run_child(flag: str) -> dict[str, float]:
+        env = dict(os.environ, XLA_FLAGS=flag)
+        return json.loads(subprocess.run(child, env=env, check=True, capture_output=True, text=True).stdout)
+
+    rows = {name: run_child(flag) for name, flag in flags.items()}
 
     def baseline():
         filterpy_innovations(model, noise, h, etas[: args.baseline_samples], initial.mean, initial.cov)
 
-    base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples
-    print(f"EKF cost per sample ({args.samples} samples, median of {args.repeats}; jax {jax.__version__}; "
-          f"load average {os.getloadavg()[0]:.1f}):")
-    print("| implementation | us per sample, XLA default | us per sample, small-loop option | "
+    # the numpy baseline is written for the paper's seven states
+    paper_state = model.law.state_size == 7
+    base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples if paper_state else float("nan")
+    print(f"EKF cost per sample ({args.samples} samples, friction {args.friction}, median of {args.repeats}; "
+          f"jax {jax.__version__}; load average {os.getloadavg()[0]:.1f}):")
+    print("| implementation | us per sample, XLA default | small-loop option | small loops + inline dots | "
           "speed-up vs filterpy (best) |")
-    print("|---|---:|---:|---:|")
-    for name, seconds in default.items():
-        best = min(seconds, small[name])
-        print(f"| {name} | {seconds * 1e6:.1f} | {small[name] * 1e6:.1f} | {base / best:.0f}x |")
-    print(f"| filterpy EKF, numpy model, FD Jacobian | {base * 1e6:.1f} | - | 1x |")
+    print("|---|---:|---:|---:|---:|")
+    for name in rows["default"]:
+        times = [rows[setting][name] for setting in flags]
+        speed_up = f"{base / min(times):.0f}x" if paper_state else "-"
+        print(f"| {name} | " + " | ".join(f"{t * 1e6:.1f}" for t in times) + f" | {speed_up} |")
+    if paper_state:
+        print(f"| filterpy EKF, numpy model, FD Jacobian | {base * 1e6:.1f} | - | - | 1x |")
 
 
 if __name__ == "__main__":

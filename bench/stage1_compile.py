@@ -1,7 +1,7 @@
 """Compilation time and call time of stage 1's loss-and-gradient (`core.calibration.stage1_value_and_grad`)
 on two drops, in this process: what a change to the model's graph costs the trainer and diagnose.
 
-    .venv/bin/python bench/stage1_compile.py [--bags BAG BAG] [--calls 8]
+    .venv/bin/python bench/stage1_compile.py [--bags BAG BAG] [--calls 8] [--friction spinning_ring]
 
 Without `--bags` Table 1's experiments 9 and 11 are simulated first. Prints the tracing and lowering
 time, XLA's compilation time (`.lower(...).compile()`; the script does not use the persistent cache),
@@ -36,6 +36,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bags", nargs="+", type=Path)
     parser.add_argument("--calls", type=int, default=8)
+    parser.add_argument("--friction", default="paper", help="contact.friction of the model (default: the rig's)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         bags = args.bags
@@ -43,7 +44,7 @@ def main() -> int:
             simulate = [sys.executable, "-m", "touchdown_ros.cli", "simulate", "--experiment", "9", "11", "-o", tmp]
             subprocess.run(simulate, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             bags = [Path(tmp) / "exp_09", Path(tmp) / "exp_11"]
-        config = load_config()
+        config = load_config(overrides={"contact.friction": args.friction})
         data = load_training_data(config, bags)
         _, batch, chunks = stage1_batches(config, data, config.effects)
         h, noise = config.sample_period, config.noise

@@ -48,7 +48,7 @@ def model_drop_record(config=CONFIG, seed=0, levitated=0.02, duration=0.15, subs
     model = config.model(coeffs)
     h = config.sample_period / substeps
     n_levitated, n_drop = int(round(levitated / config.sample_period)), int(round(duration / config.sample_period))
-    xi0 = jnp.array([0.0, 0.0, 0.0, 0.0, lateral_velocity, 0.0, 0.0])
+    xi0 = jnp.zeros(model.law.state_size).at[4].set(lateral_velocity)  # at rest (a spinning ring too) but x
 
     def per_sample(xi, _):
         xi = jax.lax.fori_loop(0, substeps, lambda i, s: rk4_step(model, s, h), xi)
@@ -347,15 +347,26 @@ def test_importing_the_core_sets_the_xla_options_and_keeps_a_users_own():
     import subprocess
     import sys
 
-    from touchdown_ros.core.xla import HOST_DEVICES_OPTION, usable_cores, with_collective_timeouts, with_host_devices
+    from touchdown_ros.core.xla import (
+        HOST_DEVICES_OPTION,
+        LIBRARY_DOT_OPTIONS,
+        usable_cores,
+        with_collective_timeouts,
+        with_host_devices,
+        with_options,
+    )
 
     show = "import os, touchdown_ros.core; print(os.environ['XLA_FLAGS'])"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     raised = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
-    expected = with_collective_timeouts(with_host_devices(with_small_loop_flag(""), usable_cores()))
+    expected = with_collective_timeouts(
+        with_host_devices(with_options(with_small_loop_flag(""), LIBRARY_DOT_OPTIONS), usable_cores())
+    )
     assert raised.stdout.strip() == expected and "terminate_timeout_seconds=600" in expected
+    assert "--xla_cpu_experimental_ynn_fusion_type= " in expected
     own = (
         f"--xla_backend_extra_options={SMALL_LOOP_OPTION}=1024 {HOST_DEVICES_OPTION}=1 "
+        "--xla_cpu_experimental_ynn_fusion_type=dot "
         "--xla_cpu_collective_call_terminate_timeout_seconds=60 --xla_cpu_collective_call_warn_stuck_timeout_seconds=5"
     )
     kept = subprocess.run(

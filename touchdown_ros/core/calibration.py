@@ -35,7 +35,7 @@ from touchdown_ros.core.diagnostics.regressors import library_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.training import RECORDS, Batch, innovations, output_error
-from touchdown_ros.core.types import PARAMETER_NAMES, ContactLaw, FilterNoise, Kernel, Model, Nominal
+from touchdown_ros.core.types import PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Kernel, Model, Nominal
 
 #: Which Q entries each noise factor scales: radial (x, y, xdot, ydot) and axial (z, zdot); theta stays.
 Q_BLOCKS = ((0, 1, 4, 5), (2, 6))
@@ -74,9 +74,9 @@ def support_law(law: ContactLaw, log_support: Array) -> ContactLaw:
     return law.with_support(values[0], values[1])
 
 
-def q_factors(log_q: Array) -> Array:
-    """(7,) factors on the diagonal of Q from the two block factors."""
-    factors = jnp.ones(7, dtype=log_q.dtype)
+def q_factors(log_q: Array, size: int = STATE_SIZE) -> Array:
+    """(size,) factors on the diagonal of Q from the two block factors (a spinning ring's speed: 1)."""
+    factors = jnp.ones(size, dtype=log_q.dtype)
     for j, block in enumerate(Q_BLOCKS):
         factors = factors.at[jnp.asarray(block)].set(jnp.exp(log_q[j]))
     return factors
@@ -102,7 +102,7 @@ def effect_scales(effects: Effects) -> Effects:
 
 def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Model, force: float) -> Effects:
     """`scales` (`effect_scales`) with the named effects' parameter scales replaced by the change
-    that moves the effect's force by `force` N rms along the states (N, 7), linearised at the
+    that moves the effect's force by `force` N rms along the states (N, n), linearised at the
     effect's values in `model.effects` (its defaults if it is not there): every coordinate then
     moves the model alike, whatever its unit (a stiffness in N/m, a load in N, a drag in N s/m
     started at 10 for 3000); a parameter that moves no force there keeps its scale."""
@@ -124,7 +124,7 @@ def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Mo
 
 def data_scales(model: Model, states: np.ndarray, acts: np.ndarray) -> Effects:
     """Stage 1's scales of `model.effects`' parameters: `force_scaled` by the rotor's weight along
-    the states (N, 7) where each effect acts (acts (N, E): its gate on), from its values there."""
+    the states (N, n) where each effect acts (acts (N, E): its gate on), from its values there."""
     weight = float(model.rig.mass) * float(model.rig.gravity)
     scales = effect_scales(model.effects)
     for i, name in enumerate(model.effects.names):
@@ -183,7 +183,7 @@ def stage1_model_and_noise(
         ),
         effects=apply_scales(theta.effects, scales),
     )
-    return model, noise._replace(process=noise.process * q_factors(theta.log_q))
+    return model, noise._replace(process=noise.process * q_factors(theta.log_q, len(noise.process)))
 
 
 def stage1_objective(
@@ -506,7 +506,7 @@ def strongly_typed(tree):
 
 
 def filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
-    """(B, L, 7) filtered states of every record and (B, L) normalised innovations squared."""
+    """(B, L, n) filtered states of every record and (B, L) normalised innovations squared."""
     return _filtered_states(strongly_typed(model), strongly_typed(noise), h, batch)
 
 
@@ -525,9 +525,10 @@ def _filtered_states(model: Model, noise: FilterNoise, h: float, batch: Batch) -
 def contact_samples(
     model: Model, states: np.ndarray
 ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """(radial deformation r - r0, rdot) and (axial compression -(z + z0), zdot) of states (..., 7),
+    """(radial deformation r - r0, rdot) and (axial compression -(z + z0), zdot) of states (..., n),
     flattened, m and m/s (the kernel inputs rho and zeta of eq. 10)."""
-    states = np.asarray(states).reshape(-1, 7)
+    states = np.asarray(states)
+    states = states.reshape(-1, states.shape[-1])
     radial, rdot, axial, zdot = deformations(model.rig, states[np.all(np.isfinite(states), axis=1)])
     return (radial, rdot), (axial, zdot)
 

@@ -7,7 +7,7 @@ opposes sliding, so here F_zR = -mu sign(zdot) F_nR.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +15,9 @@ from jax import Array
 
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
-from touchdown_ros.core.types import OUTPUT_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model
+from touchdown_ros.core.types import (
+    OMEGA_RING, OUTPUT_SIZE, STATE_SIZE, THETA, XDOT, YDOT, ZDOT, ContactForces, ContactLaw, Model, Rig,
+)
 
 
 def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -61,9 +63,12 @@ def friction(
     s_t = whirl - omega r, radially at rdot, axially at zdot. Coulomb friction opposes that slip
     with mu F_nR in the bore (on (s_t, zdot)) and k_ZR F_zZ on the face (on (s_t, rdot)),
     regularised below the law's slip velocity. It drives the rotor towards forward synchronous whirl.
+    A ring whose speed is a state: `ring_friction`.
     """
     if law.friction == "paper":  # static: the law's friction model is pytree aux data
         return F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR
+    if law.friction == "spinning_ring":
+        raise ValueError("friction against a spinning ring needs its speed: use ring_friction")
     v = law.slip_velocity
     slip_t = whirl - speed * r
     bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
@@ -71,17 +76,60 @@ def friction(
     return F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot
 
 
-def contact_forces(model: Model, xi: Array) -> ContactForces:
-    """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
+def ring_friction(
+    law: ContactLaw, rig: Rig, speed: Array, ring_speed: Array, mu: Array, k_ZR: Array, F_nR: Array, F_zZ: Array,
+    r: Array, rdot: Array, whirl: Array, zdot: Array,
+) -> tuple[Array, Array, Array, Array]:
+    """F_n, F_t, F_z (N) on the rotor and the friction torque (N m) on an inner ring turning at
+    ring_speed (rad/s), Coulomb friction regularised below the law's slip velocity.
+
+    Bore (journal radius R): the rotor's surface slides on the ring's tangentially at
+    s_t = whirl + R omega - (R + r) omega_ring and axially at zdot; mu F_nR opposes (s_t, zdot).
+    Face (mean radius R_a): the rotor spins against the ring at (omega - omega_ring) R_a and its
+    centre moves at (whirl - omega r, rdot); k_ZR F_zZ opposes that slip (the spin counted twice
+    for the annulus' mean torque arm). Both torques turn the ring towards the rotor's speed.
+    """
+    v = law.slip_velocity
+    slip_t = whirl + rig.journal_radius * speed - (rig.journal_radius + r) * ring_speed
+    bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
+    lateral_t = whirl - speed * r
+    spin = (speed - ring_speed) * rig.face_radius
+    face = k_ZR * F_zZ / jnp.sqrt(lateral_t**2 + rdot**2 + 4.0 * spin**2 + v**2)
+    torque = (rig.journal_radius + r) * bore * slip_t + face * 2.0 * spin * rig.face_radius
+    return F_nR + face * rdot, bore * slip_t + face * lateral_t, F_zZ - bore * zdot, torque
+
+
+class _ContactState(NamedTuple):
+    """What the friction models need at one state: geometry, normal forces and friction coefficients."""
+
+    speed: Array  # rotor, rad/s
+    mu: Array
+    k_ZR: Array
+    F_nR: Array  # N, bore normal force
+    F_zZ: Array  # N, face normal force (through the support)
+    r: Array  # m
+    rdot: Array  # m/s
+    whirl: Array  # m/s
+    zdot: Array  # m/s
+    cos_a: Array
+    sin_a: Array
+    radial_deformation: Array  # m
+    axial_deformation: Array  # m
+
+    @property
+    def sliding(self) -> tuple[Array, ...]:
+        """The friction models' arguments after the speeds: mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot."""
+        return self.mu, self.k_ZR, self.F_nR, self.F_zZ, self.r, self.rdot, self.whirl, self.zdot
+
+
+def _contact_state(model: Model, xi: Array) -> _ContactState:
     rig = model.rig
-    x, y, z, _, xdot, ydot, zdot = xi
+    x, y, z, _, xdot, ydot, zdot = xi[:STATE_SIZE]
     r, cos_a, sin_a = polar(x, y)
     rdot = cos_a * xdot + sin_a * ydot  # eq. 13e
 
     radial_deformation = r - rig.radial_clearance
     axial_deformation = -(z + rig.axial_clearance)
-    radial_contact = radial_deformation > 0.0  # eq. 5 criterion r <= r0 is "no contact"
-    axial_contact = axial_deformation > 0.0  # eq. 7 criterion z >= -z0 is "no contact"
 
     k_R, c_R, mu = radial_parameters(model.kernel, model.nominal, model.coeffs, radial_deformation, rdot)
     k_Z, c_Z, k_ZR = axial_parameters(model.kernel, model.nominal, model.coeffs, axial_deformation, zdot)
@@ -90,15 +138,33 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     F_zZ = normal_force(model.law, k_Z, c_Z, axial_deformation, -zdot)  # eq. 8c: -k_Z (z + z0) - c_Z zdot
     F_zZ = yielding_support(model.law, F_zZ)
     whirl = cos_a * ydot - sin_a * xdot  # m/s, centre velocity along the anticlockwise tangent
-    F_n, F_t, F_z = friction(model.law, rotor_speed(model, xi)[0], mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot)
+    speed = rotor_speed(model, xi)[0]
+    return _ContactState(
+        speed, mu, k_ZR, F_nR, F_zZ, r, rdot, whirl, zdot, cos_a, sin_a, radial_deformation, axial_deformation
+    )
+
+
+def _ring_torque(model: Model, c: _ContactState, ring_speed: Array) -> Array:
+    return ring_friction(model.law, model.rig, c.speed, ring_speed, *c.sliding)[3]
+
+
+def contact_forces(model: Model, xi: Array) -> ContactForces:
+    """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
+    c = _contact_state(model, xi)
+    if model.law.friction == "spinning_ring":
+        F_n, F_t, F_z, torque = ring_friction(model.law, model.rig, c.speed, xi[OMEGA_RING], *c.sliding)
+    else:
+        F_n, F_t, F_z = friction(model.law, c.speed, *c.sliding)
+        torque = jnp.zeros((), xi.dtype)
     return ContactForces(
         F_n=F_n,
         F_t=F_t,
         F_z=F_z,
-        F_x=-F_n * cos_a + F_t * sin_a,
-        F_y=-F_n * sin_a - F_t * cos_a,
-        radial_contact=radial_contact,
-        axial_contact=axial_contact,
+        F_x=-F_n * c.cos_a + F_t * c.sin_a,
+        F_y=-F_n * c.sin_a - F_t * c.cos_a,
+        radial_contact=c.radial_deformation > 0.0,  # eq. 5 criterion r <= r0 is "no contact"
+        axial_contact=c.axial_deformation > 0.0,  # eq. 7 criterion z >= -z0 is "no contact"
+        ring_torque=torque,
     )
 
 
@@ -108,7 +174,7 @@ def contact_force_xyz(forces: ContactForces) -> Array:
 
 
 def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces, Array]:
-    """`contact_forces(model, xi)` and d (F_x, F_y, F_z) / d xi (3, 7), N per state unit.
+    """`contact_forces(model, xi)` and d (F_x, F_y, F_z) / d xi (3, n), N per state unit.
 
     Reverse mode, as `phi_and_jacobian`: one forward pass (the forces) and three pullbacks, one
     per force component. Equal to `jax.jacfwd` of the stacked components to round-off, and
@@ -150,7 +216,8 @@ def unbalance_change(model: Model, xi: Array) -> Array:
 
 def phi(model: Model, xi: Array) -> Array:
     """State derivative d xi / dt of eq. 12, xi = [x y z theta xdot ydot zdot]; the unbalance turns at
-    `rotor_speed` (the rig's constant speed unless a speed effect moves it)."""
+    `rotor_speed` (the rig's constant speed unless a speed effect moves it). With a spinning ring
+    (xi[7] its speed) the ring's angular acceleration, friction torque over its inertia, follows."""
     rig = model.rig
     forces = contact_forces(model, xi)
     speed, angle = rotor_speed(model, xi)
@@ -170,6 +237,7 @@ def phi(model: Model, xi: Array) -> Array:
             F_y / rig.mass + unbalance * jnp.sin(angle),
             F_z / rig.mass - rig.gravity,
         ]
+        + ([forces.ring_torque / rig.ring_inertia] if model.law.friction == "spinning_ring" else [])
     )
 
 
@@ -195,9 +263,76 @@ def rk4(rate: Callable[[Array], Array], xi: Array, h: float) -> Array:
     return xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
 
 
+#: Newton iterations of the ring's implicit update (each halves the bracket at least).
+RING_NEWTON_STEPS = 30
+
+
+def ring_speed_after(model: Model, xi: Array, h: float) -> Array:
+    """The ring's speed (rad/s) after a step of h s with the rotor held at xi, by backward Euler:
+    w = w0 + h T(w) / J.
+
+    The ring is light against the friction torque that holds it to the rotor, a stiff equation
+    (rate about 1e6 /s stuck to the rotor: explicit RK4 at 0.1 ms diverges); backward Euler is
+    stable for any h. T falls with w, so the root lies between w0 and the explicit step
+    w0 + h T(w0) / J: Newton steps safeguarded by bisection within that bracket (plain Newton
+    cycled between two speeds). The loop runs on values only; one more Newton step from its root,
+    differentiable, carries the exact first derivative (implicit function theorem: the residual
+    is zero there).
+    """
+    J = model.rig.ring_inertia
+    w0 = xi[OMEGA_RING]
+    held_model, held_xi = jax.lax.stop_gradient((model, xi))
+    held = _contact_state(held_model, held_xi)
+    start = held_xi[OMEGA_RING]
+
+    def residual(w: Array) -> tuple[Array, Array]:
+        T, dT = jax.jvp(lambda u: _ring_torque(held_model, held, u), (w,), (jnp.ones_like(w),))
+        return w - start - h * T / J, 1.0 - h * dT / J
+
+    explicit = start - residual(start)[0]
+    lo, hi = jnp.minimum(start, explicit), jnp.maximum(start, explicit)
+
+    def iterate(_, bracket):
+        lo, hi, w = bracket
+        r, dr = residual(w)
+        lo, hi = jnp.where(r < 0.0, w, lo), jnp.where(r < 0.0, hi, w)
+        step = w - r / dr
+        return lo, hi, jnp.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+
+    root = jax.lax.fori_loop(0, RING_NEWTON_STEPS, iterate, (lo, hi, 0.5 * (lo + hi)))[2]
+    c = _contact_state(model, xi)
+    T, dT = jax.jvp(lambda u: _ring_torque(model, c, u), (root,), (jnp.ones_like(root),))
+    return root - (root - w0 - h * T / J) / (1.0 - h * dT / J)
+
+
+def spins_ring(model: Model) -> bool:
+    """Whether the ring's speed is a state (static: the law's friction model)."""
+    return model.law.friction == "spinning_ring"
+
+
+def _ring_held(model: Model) -> Callable[[Array], Array]:
+    """phi with the ring's speed held (its row zero): the rotor's part of a step."""
+    return lambda state: phi(model, state).at[OMEGA_RING].set(0.0)
+
+
 def rk4_step(model: Model, xi: Array, h: float) -> Array:
-    """f of eq. 15: one RK4 step of phi, of length h (s)."""
+    """f of eq. 15: one RK4 step of phi, of length h (s). With a spinning ring its speed is updated
+    first (`ring_speed_after`) and held through the rotor's RK4 step."""
+    if spins_ring(model):
+        return rk4(_ring_held(model), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
     return rk4(lambda state: phi(model, state), xi, h)
+
+
+def ring_update_jacobian(model: Model, held: Array, h: float) -> Array:
+    """d xi_held / d xi (n, n) of the ring's implicit update xi -> xi with omega_ring replaced by w,
+    w = omega_ring + h T(w, rotor) / J (`ring_speed_after`), at its result `held`: the identity but
+    for the ring's row, by the implicit function theorem from one gradient of the torque T:
+    dw / d xi = (e_ring + h / J dT / d rotor) / (1 - h / J dT / dw)."""
+    J = model.rig.ring_inertia
+    dT = jax.grad(lambda state: contact_forces(model, state).ring_torque)(held)  # (n,): rotor, then w
+    rotor = dT.at[OMEGA_RING].set(0.0)
+    row = (jnp.zeros_like(held).at[OMEGA_RING].set(1.0) + h / J * rotor) / (1.0 - h / J * dT[OMEGA_RING])
+    return jnp.eye(held.shape[0], dtype=held.dtype).at[OMEGA_RING].set(row)
 
 
 def transition_jacobian(model: Model, xi: Array, h: float) -> Array:
@@ -205,15 +340,16 @@ def transition_jacobian(model: Model, xi: Array, h: float) -> Array:
     return jax.jacfwd(rk4_step, argnums=1)(model, xi, h)
 
 
-def phi_and_jacobian(model: Model, xi: Array) -> tuple[Array, Array]:
-    """phi(xi) and d phi / d xi (7, 7) from one forward and three reverse-mode passes.
+def phi_and_jacobian(model: Model, xi: Array, rate: Callable[[Array], Array] | None = None) -> tuple[Array, Array]:
+    """phi(xi) and d phi / d xi (n, n) from one forward and three (four with a spinning ring)
+    reverse-mode passes; `rate` instead of phi if given (its kinematic rows phi's).
 
-    Rows 1-4 of the Jacobian are constant (xdot, ydot, zdot, omega); only the three
-    acceleration rows need automatic differentiation.
+    Rows 1-4 of the Jacobian are constant (xdot, ydot, zdot, omega); only the acceleration rows
+    need automatic differentiation.
     """
-    value, pullback = jax.vjp(lambda state: phi(model, state), xi)
+    value, pullback = jax.vjp(rate or (lambda state: phi(model, state)), xi)
     (acceleration_rows,) = jax.vmap(pullback)(jnp.eye(xi.shape[0], dtype=xi.dtype)[XDOT:])
-    kinematic = jnp.zeros((4, 7), xi.dtype).at[0, XDOT].set(1.0).at[1, YDOT].set(1.0).at[2, ZDOT].set(1.0)
+    kinematic = jnp.zeros((4, xi.shape[0]), xi.dtype).at[0, XDOT].set(1.0).at[1, YDOT].set(1.0).at[2, ZDOT].set(1.0)
     return value, jnp.concatenate([kinematic, acceleration_rows])
 
 
@@ -229,14 +365,26 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
     d phi / d xi at each stage comes from automatic differentiation; equal to
     `transition_jacobian` to round-off, at about half its cost. The four stages run as a
     `lax.scan` (eq. 16b-e are one recursion): the same arithmetic in the same order as
-    writing them out, with a quarter of the program to compile.
+    writing them out, with a quarter of the program to compile. With a spinning ring its speed is
+    updated implicitly first (`rk4_step`); Phi_k is the held RK4 step's times `ring_update_jacobian`
+    (about a third of `transition_jacobian`'s cost).
     """
+    if spins_ring(model):
+        held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
+        mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, _ring_held(model))
+        return mean, Phi @ ring_update_jacobian(model, held, h), *phi_and_jacobian(model, xi)
+    return _rk4_with_jacobian(model, xi, h)
+
+
+def _rk4_with_jacobian(
+    model: Model, xi: Array, h: float, rate_function: Callable[[Array], Array] | None = None
+) -> tuple[Array, Array, Array, Array]:
     I = jnp.eye(xi.shape[0], dtype=xi.dtype)  # noqa: E741 (the identity, as in the paper)
 
     def stage(carry, shift_and_weight):
         k, dk, total, dtotal = carry
         shift, weight = shift_and_weight
-        rate, A = phi_and_jacobian(model, xi + shift * k)
+        rate, A = phi_and_jacobian(model, xi + shift * k, rate_function)
         k, dk = h * rate, h * A @ (I + shift * dk)  # eq. 15b-e, 16b-e
         return (k, dk, total + weight * k, dtotal + weight * dk), (rate, A)
 

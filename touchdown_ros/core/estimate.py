@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import contact_forces_and_jacobian, measurement
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
-from touchdown_ros.core.types import Coefficients, ContactForces, FilterNoise, Model
+from touchdown_ros.core.types import VELOCITY, Coefficients, ContactForces, FilterNoise, Model
 
 
 class SampleGrid(NamedTuple):
@@ -26,8 +26,8 @@ class SampleGrid(NamedTuple):
 class SignalSet(NamedTuple):
     """Per-sample signals derived from one state trajectory (filtered or smoothed)."""
 
-    state: Array  # (N, 7)
-    state_cov: Array  # (N, 7, 7)
+    state: Array  # (N, n)
+    state_cov: Array  # (N, n, n)
     acceleration: Array  # (N, 3) m/s^2
     acceleration_cov: Array  # (N, 3, 3)
     F_n: Array  # (N,) N
@@ -125,13 +125,14 @@ class DropDetector(NamedTuple):
 
 
 def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) -> Belief:
-    """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0.
+    """Prior at the onset: measured position (mean of the first samples), at rest, theta = 0 (and a
+    spinning ring at rest: the state's length is initial_cov's).
 
     numpy arrays (JAX takes them as they are): the live node builds one at each drop onset,
     where three JAX dispatches cost ~0.8 ms.
     """
     position = np.nanmean(etas[:samples], axis=0)
-    mean = np.concatenate([position, [0.0, 0.0, 0.0, 0.0]])
+    mean = np.concatenate([position, np.zeros(len(initial_cov) - len(position))])
     return Belief(mean, np.diag(np.asarray(initial_cov, dtype=np.float64)))
 
 
@@ -139,7 +140,7 @@ def force_model_variance(model: Model, noise: FilterNoise, sample_period: float)
     """(3,) N^2 per sensor axis: the variance of the contact force the model itself leaves out,
     the process noise on the velocities read as a force, m^2 Q_v / h^2 (the filter's own
     account of its acceleration error; Q as the training fitted it)."""
-    return model.rig.mass**2 * jnp.asarray(noise.process)[4:] / sample_period**2
+    return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
 def force_covariance(forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None) -> Array:
@@ -158,8 +159,8 @@ def signals(model: Model, states: Belief, model_variance: Array | None = None) -
     (`force_model_variance`) added in contact."""
 
     def one(mean: Array, cov: Array):
-        acceleration = phi(model, mean)[4:]
-        J = jax.jacfwd(lambda s: phi(model, s)[4:])(mean)
+        acceleration = phi(model, mean)[VELOCITY]
+        J = jax.jacfwd(lambda s: phi(model, s)[VELOCITY])(mean)
         forces, J_force = contact_forces_and_jacobian(model, mean)
         return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance)
 

@@ -59,7 +59,7 @@ def candidate_gates(model_gates: np.ndarray, count: int, chosen: int | None) -> 
 
 def contact_phases(states: np.ndarray, rig: Rig) -> np.ndarray:
     """Contact phase (`diagnostics.PHASES`: 0 free flight, 1 axial only, 2 radial only, 3 both) of
-    states (..., 7): radial contact where r > r0, axial where -(z + z0) > 0."""
+    states (..., n): radial contact where r > r0, axial where -(z + z0) > 0."""
     radial, _, axial, _ = deformations(rig, states)
     return contact_phase(radial > 0.0, axial > 0.0)
 
@@ -69,7 +69,7 @@ class SampleMeasures(NamedTuple):
 
     nll: Array  # (B, L) -2 ln L of the innovation (without constants), 0 where no sample
     k_step_error: Array  # (B, L, 3) m, k-step predicted measurement h(xi) minus the measured (NaN where none)
-    states: Array  # (B, L, 7) filtered states
+    states: Array  # (B, L, n) filtered states
 
 
 def sample_measures(model: Model, noise: FilterNoise, h: float, batch: Batch, k: int) -> SampleMeasures:

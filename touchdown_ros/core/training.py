@@ -39,8 +39,8 @@ class Batch(NamedTuple):
     """Records of equal length (shorter ones padded with NaN samples, which are not used)."""
 
     etas: Array  # (B, L, 3) m
-    initial_mean: Array  # (B, 7)
-    initial_cov: Array  # (B, 7, 7)
+    initial_mean: Array  # (B, n)
+    initial_cov: Array  # (B, n, n)
     valid: Array  # (B, L) bool, sample present and counted in the loss
     gates: Array  # (B, E) which of the model's E effects act in each record (1 on, 0 off)
     held_out: Array  # (B, L) bool, sample filtered but counted in the held-out error, not the loss

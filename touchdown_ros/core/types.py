@@ -10,9 +10,12 @@ from jax import Array
 
 from touchdown_ros.core.effects import Effects
 
-#: Indices into the state xi = [x y z theta xdot ydot zdot] (paper eq. 11).
-X, Y, Z, THETA, XDOT, YDOT, ZDOT = range(7)
-STATE_SIZE = 7
+#: Indices into the state xi = [x y z theta xdot ydot zdot] (paper eq. 11), and the inner ring's
+#: speed omega_ring (rad/s) that follows them when the friction model spins the ring
+#: (`ContactLaw.state_size`).
+X, Y, Z, THETA, XDOT, YDOT, ZDOT, OMEGA_RING = range(8)
+STATE_SIZE = 7  # the paper's state; with a spinning ring, 8
+VELOCITY = slice(XDOT, ZDOT + 1)  # xdot, ydot, zdot in xi; phi(xi)[VELOCITY] is the acceleration
 OUTPUT_SIZE = 3
 #: Names of the six learned parameters, in the paper's order alpha_1..alpha_6 (eq. 9).
 PARAMETER_NAMES = ("k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR")
@@ -29,6 +32,9 @@ class Rig(NamedTuple):
     radial_clearance: float  # r0, m
     axial_clearance: float  # z0, m
     gravity: float = 9.80665  # g, m/s^2
+    journal_radius: float = 0.1  # R, m: the rotor's journal in the bore (friction torque on a spinning ring)
+    face_radius: float = 0.1  # R_a, m: mean radius of the face contact
+    ring_inertia: float = 3.0e-3  # J, kg m^2: the inner ring's polar moment with what spins with it
 
 
 class Nominal(NamedTuple):
@@ -53,11 +59,13 @@ class ContactLaw(NamedTuple):
     pass at most P + S (degressive). The exponents and the support are traced numbers, so one
     compiled filter serves every law.
 
-    Friction (`dynamics.friction`): the paper's (eq. 6b, 6c, 8b: the ring at rest, F_t = mu F_n +
-    k_ZR F_zZ) or, with `co_rotating_ring` = 1, Coulomb friction on the slip against an inner ring
-    spinning with the rotor, regularised below `slip_velocity` (m/s). The choice is static (pytree
-    aux data, registered below): a program holds one friction model, not both selected per sample
-    (both had cost stage 1 about 40 % of its compilation and a third of its step: docs/calibration.md,
+    Friction (`dynamics.friction`, FRICTION_MODELS[friction_model]): the paper's (eq. 6b, 6c, 8b:
+    the ring at rest, F_t = mu F_n + k_ZR F_zZ); "co_rotating_ring", Coulomb friction on the slip
+    against an inner ring spinning with the rotor; "spinning_ring", the same against a ring whose
+    speed is an eighth state, spun up by the friction's torque (`dynamics.ring_friction`). Coulomb
+    friction is regularised below `slip_velocity` (m/s). The choice is static (pytree aux data,
+    registered below): a program holds one friction model, not several selected per sample
+    (two had cost stage 1 about 40 % of its compilation and a third of its step: docs/calibration.md,
     "Cost").
     """
 
@@ -66,7 +74,7 @@ class ContactLaw(NamedTuple):
     floored: float = 0.0  # 1: the force never pulls; 0: as printed
     support_preload: float = float("inf")  # N, face force above which the axial support yields; inf: rigid
     support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
-    co_rotating_ring: float = 0.0  # 1: friction against a ring spinning with the rotor; 0: the paper's
+    friction_model: int = 0  # index into FRICTION_MODELS; 0: the paper's
     slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
 
     @staticmethod
@@ -107,12 +115,17 @@ class ContactLaw(NamedTuple):
             raise ValueError(f"friction must be one of {', '.join(FRICTION_MODELS)}, got {friction!r}")
         if not slip_velocity > 0.0:
             raise ValueError(f"slip_velocity must be > 0 m/s, got {slip_velocity!r}")
-        return self._replace(co_rotating_ring=float(friction == "co_rotating_ring"), slip_velocity=slip_velocity)
+        return self._replace(friction_model=FRICTION_MODELS.index(friction), slip_velocity=slip_velocity)
 
     @property
     def friction(self) -> str:
-        """'paper' or 'co_rotating_ring' (FRICTION_MODELS)."""
-        return FRICTION_MODELS[int(float(self.co_rotating_ring) > 0.0)]
+        """One of FRICTION_MODELS: 'paper', 'co_rotating_ring', 'spinning_ring'."""
+        return FRICTION_MODELS[self.friction_model]
+
+    @property
+    def state_size(self) -> int:
+        """Length of the state xi under this law: 7, or 8 when the ring's speed is a state."""
+        return STATE_SIZE + (self.friction == "spinning_ring")
 
     @property
     def label(self) -> str:
@@ -124,22 +137,23 @@ class ContactLaw(NamedTuple):
         return f"{law}, support yields above {preload / 1e3:.3g} kN (at most {(preload + span) / 1e3:.3g} kN)"
 
 
-_LAW_FIELDS = tuple(f for f in ContactLaw._fields if f != "co_rotating_ring")
+_LAW_FIELDS = tuple(f for f in ContactLaw._fields if f != "friction_model")
 
 
-def _flatten_law(law: ContactLaw) -> tuple[tuple, float]:
-    return tuple(getattr(law, f) for f in _LAW_FIELDS), float(law.co_rotating_ring)
+def _flatten_law(law: ContactLaw) -> tuple[tuple, int]:
+    return tuple(getattr(law, f) for f in _LAW_FIELDS), int(law.friction_model)
 
 
-def _unflatten_law(co_rotating_ring: float, children: tuple) -> ContactLaw:
-    return ContactLaw(**dict(zip(_LAW_FIELDS, children)), co_rotating_ring=co_rotating_ring)
+def _unflatten_law(friction_model: int, children: tuple) -> ContactLaw:
+    return ContactLaw(**dict(zip(_LAW_FIELDS, children)), friction_model=friction_model)
 
 
 jax.tree_util.register_pytree_node(ContactLaw, _flatten_law, _unflatten_law)
 
 CONTACT_LAWS = ("linear", "hertz")
-#: Friction models: the paper's (ring at rest) and Coulomb friction against a ring spinning with the rotor.
-FRICTION_MODELS = ("paper", "co_rotating_ring")
+#: Friction models: the paper's (ring at rest), Coulomb friction against a ring spinning with the rotor,
+#: and against a ring spun up by the friction (its speed a state).
+FRICTION_MODELS = ("paper", "co_rotating_ring", "spinning_ring")
 
 
 class Kernel(NamedTuple):
@@ -187,9 +201,9 @@ class Model(NamedTuple):
 class FilterNoise(NamedTuple):
     """EKF noise and initialisation (eq. 17): Q, R and P_0 as diagonals."""
 
-    process: Array  # (7,) diagonal of Q, state units^2 per sample
+    process: Array  # (n,) diagonal of Q, state units^2 per sample (n: `ContactLaw.state_size`)
     measurement: Array  # (3,) diagonal of R, m^2
-    initial: Array  # (7,) diagonal of P_0
+    initial: Array  # (n,) diagonal of P_0
 
 
 class ContactForces(NamedTuple):
@@ -202,3 +216,4 @@ class ContactForces(NamedTuple):
     F_y: Array  # ... on the sensor y axis (eq. 4b times m)
     radial_contact: Array  # bool, r > r0
     axial_contact: Array  # bool, z < -z0
+    ring_torque: Array = 0.0  # N m, friction torque on a spinning ring (spinning_ring only)

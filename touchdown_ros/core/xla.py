@@ -12,6 +12,13 @@ then it compiles the whole loop into one function, about 3x cheaper per EKF row 
 and about half the compilation time of the training gradient (bench/ekf_cost.py,
 bench/train_cost.py).
 
+Small matrix products inline. XLA's CPU backend hands some dot products to its YNNPACK library
+as calls of their own (8 x 8, as with a spinning ring's eighth state, but not 7 x 7), which takes
+them out of the small loop's single function: the live chunk of 16 rows with the ring's state cost
+about 1.9 ms instead of about 0.3 ms, and an 8 x 8 covariance product in a loop 1.5 us instead of
+0.4 us. `LIBRARY_DOT_OPTIONS` switches that off (2026-11-26; /tmp-free reproduction in
+bench/ekf_cost.py's `--friction`).
+
 Host devices. XLA shows the CPU as one device unless asked for more; the trainer
 splits the records of a batch over one device per usable core (`shard_map` in
 `core.training`), each filtering its share in its own loop. Everything else runs on
@@ -40,6 +47,8 @@ import os
 SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 SMALL_LOOP_BYTES = 1 << 30
 HOST_DEVICES_OPTION = "--xla_force_host_platform_device_count"
+#: Dot products compiled inline, not handed to the YNNPACK library (empty: no YNNPACK fusions).
+LIBRARY_DOT_OPTIONS = {"--xla_cpu_experimental_ynn_fusion_type": ""}
 #: XLA's CPU collective limits (s): abort after, and warn after, this long in one all-reduce.
 COLLECTIVE_TIMEOUTS = {
     "--xla_cpu_collective_call_terminate_timeout_seconds": 600,
@@ -67,13 +76,18 @@ def with_host_devices(xla_flags: str, count: int) -> str:
     return " ".join([*xla_flags.split(), f"{HOST_DEVICES_OPTION}={count}"])
 
 
+def with_options(xla_flags: str, options: dict[str, object]) -> str:
+    """XLA_FLAGS value with `options` added (each kept as it is if already set)."""
+    flags = xla_flags.split()
+    for option, value in options.items():
+        if option not in xla_flags:
+            flags.append(f"{option}={value}")
+    return " ".join(flags)
+
+
 def with_collective_timeouts(xla_flags: str) -> str:
     """XLA_FLAGS value with `COLLECTIVE_TIMEOUTS` added (each kept as it is if already set)."""
-    flags = xla_flags.split()
-    for option, seconds in COLLECTIVE_TIMEOUTS.items():
-        if option not in xla_flags:
-            flags.append(f"{option}={seconds}")
-    return " ".join(flags)
+    return with_options(xla_flags, COLLECTIVE_TIMEOUTS)
 
 
 def usable_cores() -> int:
@@ -112,7 +126,7 @@ def use_compilation_cache(min_compile_seconds: float = 1.0) -> str | None:
 
 
 def configure() -> None:
-    """Small-loop option, one host device per usable core and the collective timeouts in this
-    process's XLA_FLAGS (before JAX starts its backend)."""
-    flags = with_small_loop_flag(os.environ.get("XLA_FLAGS", ""))
+    """Small-loop option, inline dot products, one host device per usable core and the collective
+    timeouts in this process's XLA_FLAGS (before JAX starts its backend)."""
+    flags = with_options(with_small_loop_flag(os.environ.get("XLA_FLAGS", "")), LIBRARY_DOT_OPTIONS)
     os.environ["XLA_FLAGS"] = with_collective_timeouts(with_host_devices(flags, usable_cores()))

@@ -322,10 +322,18 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         scale_R=_array(path, document, "kernel.scale_R", (2,), positive=True),
         scale_Z=_array(path, document, "kernel.scale_Z", (2,), positive=True),
     )
+    size = law.state_size
+    filter_section = document.get("filter") if isinstance(document.get("filter"), dict) else {}
+    for key in ("filter.process_noise", "filter.initial_covariance"):
+        diagonal = filter_section.get(key.partition(".")[2])
+        if isinstance(diagonal, list) and len(diagonal) != size:
+            raise CoefficientFileError(
+                f"{path}: {key} has {len(diagonal)} values; contact.friction {law.friction} has a state of {size}"
+            )
     noise = FilterNoise(
-        process=_array(path, document, "filter.process_noise", (7,)),
+        process=_array(path, document, "filter.process_noise", (size,)),
         measurement=_array(path, document, "filter.measurement_noise", (3,), positive=True) ** 2,
-        initial=_array(path, document, "filter.initial_covariance", (7,)),
+        initial=_array(path, document, "filter.initial_covariance", (size,)),
     )
     scale = document["filter"].get("smoothing_noise_scale", 1.0)  # files before it: Q as it is
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) or scale <= 0:

@@ -23,7 +23,7 @@ from touchdown_ros.core.estimate import DropDetector
 from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.streaming.settings import StreamSettings
 from touchdown_ros.core.types import (
-    CONTACT_LAWS, FRICTION_MODELS, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig,
+    CONTACT_LAWS, FRICTION_MODELS, STATE_SIZE, Coefficients, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig,
 )
 from touchdown_ros.io.parameters import ConfigError, ParameterReader, flatten_parameters
 
@@ -208,6 +208,11 @@ class Config:
         self, nominal: Nominal, law: ContactLaw, kernel: Kernel, noise: FilterNoise, smoothing_noise_scale: float = 1.0
     ) -> "Config":
         """This rig with identified contact constants, law, kernel and filter noise (a coefficient file's)."""
+        if not len(noise.process) == len(noise.initial) == law.state_size:
+            raise ValueError(
+                f"contact.friction {law.friction} has a state of {law.state_size}, the filter noise "
+                f"{len(noise.process)} (Q) and {len(noise.initial)} (P_0)"
+            )
         return replace(
             self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale
         )
@@ -254,6 +259,13 @@ def _grid(deformation: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     return np.stack([d.ravel(), v.ravel()], axis=1)
 
 
+#: A spinning ring's speed (contact.friction: spinning_ring): Q per sample and P_0, (rad/s)^2, unless
+#: filter.ring_process_noise / filter.ring_initial_covariance say otherwise. The ring is at rest at the
+#: drop (mean 0) give or take 1 rad/s; its speed may change by about 1 rad/s per sample beyond the model.
+RING_PROCESS_NOISE = 1.0
+RING_INITIAL_COVARIANCE = 1.0
+
+
 def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>") -> Config:
     """Build a Config from flat dotted ROS parameters (as the node receives them)."""
     read = ParameterReader(flat, source)
@@ -264,6 +276,9 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         radial_clearance=read.number("rig.radial_clearance", positive=True),
         axial_clearance=read.number("rig.axial_clearance", positive=True),
         gravity=read.number("rig.gravity", 9.80665, non_negative=True),
+        journal_radius=read.number("rig.journal_radius", Rig._field_defaults["journal_radius"], positive=True),
+        face_radius=read.number("rig.face_radius", Rig._field_defaults["face_radius"], positive=True),
+        ring_inertia=read.number("rig.ring_inertia", Rig._field_defaults["ring_inertia"], positive=True),
     )
     nominal = Nominal(*(read.number(f"contact.{name}", non_negative=True) for name in Nominal._fields))
     law = _contact_law(read)
@@ -278,10 +293,15 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         scale_Z=scale.copy(),
     )
     measurement_sigma = read.number("filter.measurement_noise", positive=True)
+    ring = law.state_size > STATE_SIZE
+    ring_q = read.number("filter.ring_process_noise", RING_PROCESS_NOISE, non_negative=True)
+    ring_p0 = read.number("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE, non_negative=True)
+    rotor_q = read.numbers("filter.process_noise", STATE_SIZE, non_negative=True)
+    rotor_p0 = read.numbers("filter.initial_covariance", STATE_SIZE, non_negative=True)
     noise = FilterNoise(
-        process=read.numbers("filter.process_noise", 7, non_negative=True),
+        process=np.append(rotor_q, [ring_q] if ring else []),
         measurement=np.full(3, measurement_sigma**2),
-        initial=read.numbers("filter.initial_covariance", 7, non_negative=True),
+        initial=np.append(rotor_p0, [ring_p0] if ring else []),
     )
     config = Config(
         rig=rig,
@@ -331,7 +351,7 @@ def parse_contact_law(text: str) -> ContactLaw:
 def _contact_law(read: ParameterReader) -> ContactLaw:
     """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5), the axial
     support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N), and the
-    friction: contact.friction (paper | co_rotating_ring), contact.slip_velocity (m/s)."""
+    friction: contact.friction (paper | co_rotating_ring | spinning_ring), contact.slip_velocity (m/s)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
     rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support

@@ -141,7 +141,7 @@ def estimate_cloud(out, frame_id: str) -> PointCloud2:
     stamped at its first row (t in s after it); SI units, variances on the diagonal of each covariance."""
     stamps = out.stamps_ns
     t = (stamps - stamps[0]) / 1e9
-    velocity_variance = np.diagonal(out.state_cov[:, 4:, 4:], axis1=1, axis2=2)
+    velocity_variance = np.diagonal(out.state_cov[:, 4:7, 4:7], axis1=1, axis2=2)
     acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
     columns = np.column_stack([
         t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,

@@ -361,7 +361,7 @@ def filtered_records(
     model: Model, noise: FilterNoise, h: float, chunks: Sequence[Batch]
 ) -> tuple[np.ndarray, np.ndarray]:
     """`filtered_states` of the records of the chunks (`training_chunks`), their padding dropped:
-    (records, L, 7) states and (records, L) normalised innovations squared."""
+    (records, L, n) states and (records, L) normalised innovations squared."""
     states, nis = [], []
     for chunk in chunks:
         held = int(np.asarray(chunk.valid).any(axis=1).sum())  # records first, padding (never valid) after

@@ -41,7 +41,7 @@ def compare_metrics(result: BagEstimate) -> dict[str, Any]:
     if truth is not None:
         radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(*truth.contact_force[:, :2].T)
         metrics.update(
-            rmse_velocity_mps=float(np.linalg.norm(rmse(est.filtered.state[:, 4:], truth.velocity))),
+            rmse_velocity_mps=float(np.linalg.norm(rmse(est.filtered.state[:, 4:7], truth.velocity))),
             rmse_acceleration_mps2=float(np.linalg.norm(rmse(est.filtered.acceleration, truth.acceleration))),
             rmse_axial_force_N=float(rmse(force[:, 2:], truth.contact_force[:, 2:])[0]),
             rmse_radial_force_N=float(rmse(radial[:, None], true_radial[:, None])[0]),

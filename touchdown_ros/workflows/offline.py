@@ -268,9 +268,9 @@ def summarise(estimate: Estimate, truth: Truth | None, config: Config, answer: s
     if truth is not None:
         true_radial = np.hypot(truth.contact_force[:, 0], truth.contact_force[:, 1])
         summary["truth"] = {
-            "rmse_velocity_mps": rmse(chosen.state[:, 4:], truth.velocity).tolist(),
-            "rmse_velocity_smoothed_mps": rmse(smoothed.state[:, 4:], truth.velocity).tolist(),
-            "rmse_velocity_filtered_mps": rmse(filtered.state[:, 4:], truth.velocity).tolist(),
+            "rmse_velocity_mps": rmse(chosen.state[:, 4:7], truth.velocity).tolist(),
+            "rmse_velocity_smoothed_mps": rmse(smoothed.state[:, 4:7], truth.velocity).tolist(),
+            "rmse_velocity_filtered_mps": rmse(filtered.state[:, 4:7], truth.velocity).tolist(),
             "rmse_acceleration_mps2": rmse(chosen.acceleration, truth.acceleration).tolist(),
             "rmse_contact_force_N": rmse(force, truth.contact_force).tolist(),
             "rmse_contact_force_smoothed_N": rmse(smoothed.force_xyz, truth.contact_force).tolist(),

@@ -20,7 +20,7 @@ def contact_phase(radial_contact: np.ndarray, axial_contact: np.ndarray) -> np.n
 
 def deformations(rig: Rig, states: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Radial deformation r - r0, radial velocity rdot (eq. 13e), axial compression -(z + z0) and
-    z velocity of states (..., 7), as `core.dynamics.contact_forces` computes them (`polar`, eq. 4e):
+    z velocity of states (..., n), as `core.dynamics.contact_forces` computes them (`polar`, eq. 4e):
     each positive deformation is a contact."""
     states = np.asarray(states)
     r, cos_a, sin_a = (np.asarray(v) for v in polar(states[..., 0], states[..., 1]))

@@ -12,7 +12,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
-from touchdown_ros.core.dynamics import contact_forces, phi, rk4, unbalance_change
+from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, unbalance_change
 from touchdown_ros.core.ekf import (
     Belief,
     Transition,
@@ -22,7 +22,7 @@ from touchdown_ros.core.ekf import (
     with_jacobian,
 )
 from touchdown_ros.core.effects import SPEED
-from touchdown_ros.core.types import STATE_SIZE, Model
+from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Model
 
 
 class MissingForce(NamedTuple):
@@ -30,21 +30,30 @@ class MissingForce(NamedTuple):
 
     force: Array  # (N, 3) N, on the rotor, sensor x/y/z
     force_std: Array  # (N, 3) N, one standard deviation
-    state: Array  # (N, 7) smoothed state of the augmented filter
-    state_cov: Array  # (N, 7, 7)
+    state: Array  # (N, n) smoothed state of the augmented filter
+    state_cov: Array  # (N, n, n)
     model_force: Array  # (N, 3) N, the model's contact + effect forces at the smoothed state
 
 
 def augmented_transition(model: Model, h: float) -> Transition:
     """RK4 step (h, s) of the state s = (xi, d) augmented with a force d (3,), N, on the rotor that
-    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd)."""
-    mass = model.rig.mass
+    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd). A
+    spinning ring's speed is updated first and held, as in `rk4_step`."""
+    mass, size = model.rig.mass, model.law.state_size
+    spinning = model.law.friction == "spinning_ring"
 
     def phi_aug(s: Array) -> Array:
-        rate = phi(model, s[:STATE_SIZE])
-        return jnp.concatenate([rate.at[4:].add(s[STATE_SIZE:] / mass), jnp.zeros(3, s.dtype)])
+        rate = phi(model, s[:size]).at[VELOCITY].add(s[size:] / mass)
+        if spinning:
+            rate = rate.at[OMEGA_RING].set(0.0)
+        return jnp.concatenate([rate, jnp.zeros(3, s.dtype)])
 
-    return with_jacobian(lambda s: rk4(phi_aug, s, h))
+    def step(s: Array) -> Array:
+        if spinning:
+            s = s.at[OMEGA_RING].set(ring_speed_after(model, s[:size], h))
+        return rk4(phi_aug, s, h)
+
+    return with_jacobian(step)
 
 
 def model_force(model: Model, xi: Array) -> Array:
@@ -79,13 +88,14 @@ def disturbance_smoother(
     transition, measure = augmented_transition(model, h), model_measurement(model)
     outputs = extended_kalman_filter(transition, measure, Q, R, Belief(mean0, cov0), jnp.asarray(etas))
     smoothed = rts_smoother(outputs)
-    state = smoothed.mean[:, :STATE_SIZE]
+    size = model.law.state_size
+    state = smoothed.mean[:, :size]
     forces = jax.vmap(lambda s: model_force(model, s))(state)
     return MissingForce(
-        force=smoothed.mean[:, 7:],
-        force_std=jnp.sqrt(jnp.diagonal(smoothed.cov, axis1=1, axis2=2)[:, 7:]),
+        force=smoothed.mean[:, size:],
+        force_std=jnp.sqrt(jnp.diagonal(smoothed.cov, axis1=1, axis2=2)[:, size:]),
         state=state,
-        state_cov=smoothed.cov[:, :STATE_SIZE, :STATE_SIZE],
+        state_cov=smoothed.cov[:, :size, :size],
         model_force=forces,
     )
 

@@ -33,7 +33,7 @@ def fit_percent(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
 
 
 def k_step_predictions(model: Model, states: Array, h: float, k: int) -> Array:
-    """(N, 7): row i is the filtered state of sample i - k propagated k RK4 steps with the
+    """(N, n): row i is the filtered state of sample i - k propagated k RK4 steps with the
     model alone (no measurement update); the first k rows are NaN."""
     states = jnp.asarray(states)
 

@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 from touchdown_ros.core.diagnostics.missing_force import model_force
 from touchdown_ros.core.dynamics import phi
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
-from touchdown_ros.core.types import Model
+from touchdown_ros.core.types import VELOCITY, Model
 
 
 def coefficient_regressors(model: Model, states: Array) -> Array:
@@ -29,7 +29,7 @@ def coefficient_regressors(model: Model, states: Array) -> Array:
 
 
 class Motion(NamedTuple):
-    """The model's rate phi(xi) (7,) and its Jacobian A = d phi / d xi (7, 7) at one state: what every
+    """The model's rate phi(xi) (n,) and its Jacobian A = d phi / d xi (n, n) at one state: what every
     measurement effect's force equivalent needs, computed once for all of them."""
 
     rate: Array
@@ -48,7 +48,7 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
 
     A measurement effect that changes the sensor output by D(xi) (m) makes a model without it
     follow the state xi + (D, 0, dD/dt), whose motion needs the extra force (first order in D)
-    m (d^2 D / dt^2 - A (D, 0, dD/dt)), A = d phi[4:] / d xi, the time derivatives along the
+    m (d^2 D / dt^2 - A (D, 0, dD/dt)), A = d phi[VELOCITY] / d xi, the time derivatives along the
     model's phi: dD/dt = J_D phi, d^2 D / dt^2 = phi^T H_D phi + J_D A phi (J_D, H_D: D's first and
     second derivatives). E.g. a z gain g in free flight: the constant -(g - 1) m g_0; a z offset:
     zero in free flight, the contact stiffness times it in contact.
@@ -58,7 +58,7 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
         return jnp.asarray(effect.function(xi, params, rig), xi.dtype)
     if effect.kind == SPEED:
         def acceleration(effects: Effects) -> Array:
-            return phi(model._replace(effects=effects), xi)[4:]
+            return phi(model._replace(effects=effects), xi)[VELOCITY]
 
         return mass * (acceleration(Effects((effect,), (params,))) - acceleration(Effects()))
 
@@ -72,7 +72,7 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
     curvature = jax.jvp(change_rate, (xi,), (at.rate,))[1]  # phi^T H_D phi
     change_acceleration = curvature + jax.jacfwd(change)(xi) @ (at.A @ at.rate)
     shift = jnp.concatenate([change(xi), jnp.zeros(1, xi.dtype), change_velocity])
-    return mass * (change_acceleration - at.A[4:] @ shift)
+    return mass * (change_acceleration - at.A[VELOCITY] @ shift)
 
 
 def effect_regressors(effect: Effect, states: Array, model: Model, values: dict | None = None) -> tuple[Array, Array]:

@@ -61,7 +61,7 @@ def residual_tests(
     rig: Rig, innovations: Sequence[np.ndarray], states: Sequence[np.ndarray], max_lag: int
 ) -> dict[str, Any]:
     """Whiteness of the innovations (N, 3) and their cross-correlation with velocity and deformation
-    (from the states (N, 7)), per axis, pooled over records (each record's sequence tested, then the
+    (from the states (N, n)), per axis, pooled over records (each record's sequence tested, then the
     statistics averaged)."""
     tests: dict[str, Any] = {}
     for i, axis in enumerate(AXES):

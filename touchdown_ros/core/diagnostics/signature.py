@@ -50,7 +50,7 @@ def signature(
     rig: Rig, h: float, forces: Sequence[np.ndarray], states: Sequence[np.ndarray], phases: Sequence[np.ndarray]
 ) -> dict[str, Any]:
     """What the missing force looks like, from each record's missing force (N, 3), the state it was
-    estimated with (N, 7) and the contact phase (N,): spectrum peak per axis vs rotor speed, and its
+    estimated with (N, n) and the contact phase (N,): spectrum peak per axis vs rotor speed, and its
     dependence on contact phase, deformation and velocity (correlation coefficients)."""
     rotor_hz = rig.speed / (2.0 * np.pi)
     out: dict[str, Any] = {"rotor_frequency_Hz": rotor_hz, "axes": {}}

@@ -18,21 +18,24 @@ from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_ja
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
 from touchdown_ros.core.estimate import force_covariance, force_model_variance
 from touchdown_ros.core.streaming.outputs import PACKED_WIDTH
-from touchdown_ros.core.types import FilterNoise, Model
+from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, FilterNoise, Model
 
 ChunkFunction = Callable[[np.ndarray], Array]
 
-#: Last row of a chunk buffer: the prior (mean 7, covariance 49 row-major), then the count of real rows.
-PRIOR = slice(0, 7 + 49)
-COUNT = 7 + 49
-assert PACKED_WIDTH > COUNT, "a chunk buffer's row must hold the prior and the count"
+#: The largest state a chunk buffer's last row holds (mean, covariance row-major, then the count of real rows).
+assert PACKED_WIDTH > 8 + 64, "a chunk buffer's row must hold the prior and the count"
+
+
+def prior_columns(size: int) -> tuple[slice, int]:
+    """Columns of a chunk buffer's last row that hold the prior of a state of `size` and the count."""
+    return slice(0, size + size * size), size + size * size
 
 
 def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) -> ChunkFunction:
     """Jitted `buffer (C + 1, width) -> buffer`: the EKF over C rows, one compiled loop, one array each way.
 
     In: rows 0..C-1 hold the measurements eta (m) in columns 0-2 (NaN: predict only);
-    row C holds the prior and, in column `COUNT`, the number of real rows. Out: row k
+    row C holds the prior and, in the column after it (`prior_columns`), the number of real rows. Out: row k
     holds the packed results of row k (`outputs.PACKED_LAYOUT`), row C the prior after the last real
     row. Each row is the EKF step (`update`, then `predict_with_rate`) and the filtered
     signals of `estimate.signals` (acceleration and its covariance from the first RK4
@@ -51,20 +54,25 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     (bench/chunk_dispatch.py).
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
+    size = len(noise.process)
+    prior_slice, count_column = prior_columns(size)
+    ring = size > STATE_SIZE
     measure = model_measurement(model)
     model_variance = force_model_variance(model, noise, sample_period)
 
     def row(prior: Belief, eta: Array) -> tuple[Belief, Array]:
         filtered, innovation, S, used = update(prior, eta, R, measure)
         next_prior, _, rate, rate_jacobian = predict_with_rate(model, filtered, Q, sample_period)
-        J = rate_jacobian[4:]
+        J = rate_jacobian[VELOCITY]
         forces, J_force = contact_forces_and_jacobian(model, filtered.mean)
         nis = innovation @ (_inverse_3x3(S) @ innovation)  # NaN where the sample was not used
         packed = jnp.concatenate(
             [
-                filtered.mean,
-                filtered.cov.reshape(49),
-                rate[4:],
+                filtered.mean[:STATE_SIZE],
+                filtered.cov[:STATE_SIZE, :STATE_SIZE].reshape(STATE_SIZE**2),
+                jnp.stack([filtered.mean[OMEGA_RING], jnp.sqrt(filtered.cov[OMEGA_RING, OMEGA_RING])])
+                if ring else jnp.full(2, jnp.nan, eta.dtype),
+                rate[VELOCITY],
                 (J @ filtered.cov @ J.T).reshape(9),
                 contact_force_xyz(forces),
                 force_covariance(forces, J_force, filtered.cov, model_variance).reshape(9),
@@ -80,11 +88,11 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
 
     def run(buffer: Array) -> Array:
         last = buffer.shape[0] - 1
-        count = buffer[last, COUNT]
+        count = buffer[last, count_column]
 
         def real(carried: Array, eta: Array) -> tuple[Array, Array]:
-            next_prior, packed = row(Belief(carried[:7], carried[7:COUNT].reshape(7, 7)), eta)
-            return jnp.concatenate([next_prior.mean, next_prior.cov.reshape(49)]), packed
+            next_prior, packed = row(Belief(carried[:size], carried[size:].reshape(size, size)), eta)
+            return jnp.concatenate([next_prior.mean, next_prior.cov.reshape(size * size)]), packed
 
         def padding(carried: Array, eta: Array) -> tuple[Array, Array]:
             return carried, jnp.full(PACKED_WIDTH, jnp.nan, eta.dtype)
@@ -95,15 +103,15 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
             return jax.lax.cond(k < count, real, padding, carried, eta)
 
         # scan's outputs are written in place; updating the buffer row by row in a loop made XLA copy it per row
-        carried, rows = jax.lax.scan(body, buffer[last, PRIOR], (buffer[:last, :3], jnp.arange(last)))
-        return jnp.concatenate([rows, buffer[last].at[PRIOR].set(carried)[None]])
+        carried, rows = jax.lax.scan(body, buffer[last, prior_slice], (buffer[:last, :3], jnp.arange(last)))
+        return jnp.concatenate([rows, buffer[last].at[prior_slice].set(carried)[None]])
 
     return jax.jit(run)
 
 
 def flat_belief(belief: Belief) -> np.ndarray:
-    """(56,) mean and row-major covariance, as the last row of a chunk buffer holds them."""
-    return np.concatenate([np.asarray(belief.mean), np.asarray(belief.cov).reshape(49)])
+    """(n + n^2,) mean and row-major covariance, as the last row of a chunk buffer holds them."""
+    return np.concatenate([np.asarray(belief.mean), np.asarray(belief.cov).reshape(-1)])
 
 
 def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray) -> np.ndarray:
@@ -111,6 +119,6 @@ def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray) -> np.ndarray:
     buffer = np.zeros((size + 1, PACKED_WIDTH))
     buffer[: len(etas), :3] = etas
     buffer[len(etas) : size, :3] = np.nan
-    buffer[size, PRIOR] = prior
-    buffer[size, COUNT] = len(etas)
+    buffer[size, : len(prior)] = prior
+    buffer[size, len(prior)] = len(etas)
     return buffer

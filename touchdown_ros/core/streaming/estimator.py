@@ -16,7 +16,7 @@ import numpy as np
 
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.input_policy import bridge_rows, window_is_clean
-from touchdown_ros.core.streaming.chunk_filter import PRIOR, ChunkFunction, chunk_buffer, flat_belief, make_chunk_filter
+from touchdown_ros.core.streaming.chunk_filter import ChunkFunction, chunk_buffer, flat_belief, make_chunk_filter
 from touchdown_ros.core.streaming.grid import GridBreak, StampGrid, run_lengths
 from touchdown_ros.core.streaming.outputs import StreamCounts, StreamEvent, StreamOutput, StreamUpdate, unpack
 from touchdown_ros.core.streaming.settings import StreamSettings
@@ -308,7 +308,7 @@ class StreamingEstimator:
             size = next(c for c in self._sizes if c >= count)
             result = np.asarray(self._chunk(chunk_buffer(etas[done : done + count], size, belief)))
             packed_parts.append(result[:count])
-            belief = result[size, PRIOR]
+            belief = result[size, : len(belief)]
             done += count
         self._belief = belief
         out = unpack(stamps, etas, np.concatenate(packed_parts))

@@ -83,6 +83,8 @@ class StreamOutput(NamedTuple):
     measured: np.ndarray  # (n, 3) m, NaN where missing or refused
     state: np.ndarray  # (n, 7) [x y z theta xdot ydot zdot]
     state_cov: np.ndarray  # (n, 7, 7)
+    ring_speed: np.ndarray  # (n,) rad/s, a spinning ring's speed (NaN unless the friction model has it)
+    ring_speed_std: np.ndarray  # (n,) rad/s
     acceleration: np.ndarray  # (n, 3) m/s^2
     acceleration_cov: np.ndarray  # (n, 3, 3)
     force_xyz: np.ndarray  # (n, 3) contact force on the rotor, sensor axes, N
@@ -120,6 +122,8 @@ class StreamUpdate(NamedTuple):
 PACKED_LAYOUT = (
     ("state", 7),
     ("state_cov", 49),
+    ("ring_speed", 1),
+    ("ring_speed_std", 1),
     ("acceleration", 3),
     ("acceleration_cov", 9),
     ("force_xyz", 3),
