@@ -10,7 +10,7 @@ rig's contact guess, and estimate the other bags (smoothed) with
 against the simulator's truth.
 
     .venv/bin/python bench/calibration_family.py [--variants a,b] [--train 3] [--test 2]
-        [--loss nll|one_step] [--out DIR]
+        [--loss nll|one_step] [--out DIR] [-p contact.friction:=spinning_ring ...]
 
 Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.
 Figures per held-out bag: peak axial / radial force error (%), force RMSE over the peak force
@@ -31,10 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from touchdown_ros.cli import parameter_overrides
 from touchdown_ros.core.metrics import relative_peak_error
+from touchdown_ros.io.config import load_config
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.workflows.offline import estimate_bag, estimator_for
-from touchdown_ros.sim.family import VARIANTS, variant, variant_config, write_variant_bags
+from touchdown_ros.sim.family import VARIANTS, variant, write_variant_bags
 from touchdown_ros.workflows.train import train
 
 Z95 = 1.959964
@@ -87,9 +89,14 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     }
 
 
-def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough") -> dict:
+def run_variant(
+    name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough",
+    overrides: dict | None = None,
+) -> dict:
+    """Simulate, train and estimate one rig; `overrides` (dotted keys) change the estimator's
+    configuration (the rig's guess, its friction model, ...), not the simulator's."""
     v = variant(name)
-    config = variant_config(v)
+    config = load_config(overrides={**dict(v.overrides), **(overrides or {})})
     config = replace(config, training=replace(config.training, loss=loss, search=search))
     bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
     coeffs_path = out / name / f"coefficients_{loss}.yaml"
@@ -113,6 +120,7 @@ def run_variant(name: str, out: Path, n_train: int, n_test: int, loss: str, log,
         "variant": name,
         "description": v.description,
         "loss": loss,
+        "overrides": overrides or {},
         "train_seconds": round(seconds, 1),
         "law": calibrated.law.label,
         "calibrated": {k: float(x) for k, x in calibrated.nominal._asdict().items()},
@@ -183,7 +191,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--search", default="thorough", choices=("standard", "thorough"), help="training.search")
     parser.add_argument("--out", type=Path, default=Path("results-family"))
     parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
+    parser.add_argument("-p", dest="parameters", action="append", default=[], metavar="NAME:=VALUE",
+                        help="estimator parameter for every rig (e.g. contact.friction:=spinning_ring)")
     args = parser.parse_args(argv)
+    overrides = parameter_overrides(args.parameters)
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for name in args.variants.split(","):
@@ -193,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search))
+        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides))
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
     text = table(results) + "\n" + anatomy_table(results)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.workflows.calibrate import aic, bic, damping_restart
+from touchdown_ros.workflows.calibrate import aic, bic, damping_restart, friction_restart
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -239,6 +239,31 @@ def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
     assert damping_restart(objective, names, restarted, objective(restarted)[0], io.StringIO()) is None
 
 
+def test_friction_restart_leaves_a_low_friction_basin():
+    """Two basins in (ln mu, ln k_ZR), as with a spinning ring: a shallow one at low friction where a fit
+    ends, a deeper one at the rig's (0.22, 0.16). The restart moves both to the grid pair that lowers
+    the loss most, the others kept; none when the grid lowers nothing."""
+    import io
+
+    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
+
+    def objective(x):
+        mu, k_ZR = np.exp(x[2]), np.exp(x[5])
+        low = 0.3 * np.exp(-((mu - 0.06) ** 2 + (k_ZR - 0.07) ** 2) / 0.001)
+        rig = 0.5 * np.exp(-((mu - 0.22) ** 2 + (k_ZR - 0.16) ** 2) / 0.01)
+        return float(4.0 - low - rig), np.zeros_like(x)
+
+    x = np.array([np.log(1.5e12), np.log(3e13), np.log(0.06), np.log(1.5e12), np.log(9e12), np.log(0.07)])
+    log = io.StringIO()
+    restarted = friction_restart(objective, names, x, objective(x)[0], log)
+    assert restarted is not None and "mu 0.2, k_ZR 0.2" in log.getvalue()
+    assert (np.exp(restarted[2]), np.exp(restarted[5])) == pytest.approx((0.2, 0.2))
+    np.testing.assert_array_equal(np.delete(restarted, [2, 5]), np.delete(x, [2, 5]))
+    at_rig = x.copy()
+    at_rig[2], at_rig[5] = np.log(0.22), np.log(0.16)
+    assert friction_restart(objective, names, at_rig, objective(at_rig)[0], io.StringIO()) is None
+
+
 def test_config_reads_the_axial_support():
     from touchdown_ros.io.config import ConfigError, load_config
 
@@ -317,14 +342,12 @@ def test_centres_are_placed_over_the_contact_samples():
 
 #: Peak force within this share of the truth on a held-out bag, after `touchdown train` with defaults.
 PEAK_TOLERANCE = 0.10
-#: stiff_quiet's radial peak, measured 8-14 % off after stage 2 (5 % after stage 1; docs/calibration.md,
-#: "Friction against a co-rotating ring"), is held to this looser bound; its axial peak to PEAK_TOLERANCE.
-STIFF_QUIET_RADIAL_TOLERANCE = 0.20
 
 
 #: The family rigs of the train-then-estimate test and the friction each is trained with (stiff_quiet
-#: with friction against a co-rotating ring, the others with the default, the paper's).
-TRAINED_RIGS = {"soft_bearing": "paper", "slippery": "paper", "stiff_quiet": "co_rotating_ring"}
+#: with the inner ring's speed as a state, whose radial peak missed by 8-14 % with the paper's friction;
+#: the others with the default, the paper's).
+TRAINED_RIGS = {"soft_bearing": "paper", "slippery": "paper", "stiff_quiet": "spinning_ring"}
 
 
 @pytest.fixture(scope="module", params=sorted(TRAINED_RIGS))
@@ -375,11 +398,12 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     )
     assert min(c["criterion_above_best"] for c in calibration["candidates"]) == 0.0
     assert calibration["friction"] == document["contact"]["friction"] == TRAINED_RIGS[v.name]
-    if TRAINED_RIGS[v.name] == "co_rotating_ring":
-        # friction against the co-rotating ring is identified (the paper's drives mu and k_ZR to about 0,
-        # held by the prior)
+    if TRAINED_RIGS[v.name] == "spinning_ring":
+        # friction against the spinning ring is identified near the rig's (kinetic 0.18, static 0.24; the
+        # paper's friction drives mu and k_ZR to about 0, held by the prior)
         assert not {"mu", "k_ZR"} & set(calibration["held_by_prior"]), calibration["held_by_prior"]
-        assert 0.02 < document["contact"]["mu"] < 0.3 and 0.02 < document["contact"]["k_ZR"] < 0.3
+        assert 0.12 < document["contact"]["mu"] < 0.36 and 0.12 < document["contact"]["k_ZR"] < 0.36
+        assert len(document["filter"]["process_noise"]) == 8
     # the stiffness moved far from the reference guess (5e8 N/m) to what the rig is
     config = variant_config(v)
     assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)
@@ -392,8 +416,7 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth
-    radial_tolerance = STIFF_QUIET_RADIAL_TOLERANCE if v.name == "stiff_quiet" else PEAK_TOLERANCE
-    assert abs(truth["peak_radial_force_error"]) < radial_tolerance, truth
+    assert abs(truth["peak_radial_force_error"]) < PEAK_TOLERANCE, truth
     assert max(bag["rmse_displacement_m"]) < 1.2 * sigma
     preload, span = document["contact"]["support_preload"], document["contact"]["support_span"]
     if v.name == "stiff_quiet":

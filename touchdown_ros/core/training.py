@@ -46,6 +46,11 @@ class Batch(NamedTuple):
     held_out: Array  # (B, L) bool, sample filtered but counted in the held-out error, not the loss
 
 
+def with_state_size(batch: Batch, size: int) -> Batch:
+    """The batch with its initial beliefs cut to the first `size` states (a spinning ring's dropped)."""
+    return batch._replace(initial_mean=batch.initial_mean[:, :size], initial_cov=batch.initial_cov[:, :size, :size])
+
+
 def make_batch(
     records: list[np.ndarray],
     initial_cov: np.ndarray,
