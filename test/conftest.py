@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from touchdown_ros.core import effects as fx
@@ -22,6 +23,17 @@ def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config |
     record = simulate_drop(config, CAMPAIGN[experiment - 1], seed=seed, params=params)
     write_drop_bag(record, config, path)
     return record
+
+
+def central_differences(f, x, scales):
+    """(len(f(x)), len(x)) Jacobian of f at x by central differences, step scales[j] along x_j."""
+    x = np.asarray(x, dtype=float)
+    columns = []
+    for j, scale in enumerate(scales):
+        step = np.zeros_like(x)
+        step[j] = scale
+        columns.append((np.asarray(f(x + step)) - np.asarray(f(x - step))) / (2 * scale))
+    return np.stack(columns, axis=1)
 
 
 def library_effects(names, values=None) -> fx.Effects:

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import central_differences
 from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import (
@@ -291,14 +292,7 @@ def test_ad_jacobian_matches_central_differences(case):
     h = 1e-4
     J = np.asarray(transition_jacobian(model, jnp.asarray(xi), h))
     scales = np.array([1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1e-6])
-    J_fd = np.empty((7, 7))
-    for j in range(7):
-        step = np.zeros(7)
-        step[j] = scales[j]
-        J_fd[:, j] = (
-            np.asarray(rk4_step(model, jnp.asarray(xi + step), h))
-            - np.asarray(rk4_step(model, jnp.asarray(xi - step), h))
-        ) / (2 * scales[j])
+    J_fd = central_differences(lambda s: rk4_step(model, jnp.asarray(s), h), xi, scales)
     np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
     assert not np.allclose(J, np.eye(7))
 

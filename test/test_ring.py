@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from conftest import central_differences
 
 from touchdown_ros.core import dynamics
 from touchdown_ros.core.dynamics import contact_forces, ring_speed_after, rk4_step, step_with_jacobian
@@ -91,14 +92,7 @@ def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case):
     mean, Phi = step_with_jacobian(model, jnp.asarray(xi), h)
     np.testing.assert_allclose(np.asarray(mean), np.asarray(rk4_step(model, jnp.asarray(xi), h)), rtol=1e-12)
     scales = np.array([1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1e-6, 1e-5])
-    Phi_fd = np.empty((8, 8))
-    for j in range(8):
-        step = np.zeros(8)
-        step[j] = scales[j]
-        Phi_fd[:, j] = (
-            np.asarray(rk4_step(model, jnp.asarray(xi + step), h))
-            - np.asarray(rk4_step(model, jnp.asarray(xi - step), h))
-        ) / (2 * scales[j])
+    Phi_fd = central_differences(lambda s: rk4_step(model, jnp.asarray(s), h), xi, scales)
     np.testing.assert_allclose(np.asarray(Phi), Phi_fd, rtol=1e-5, atol=1e-7)
     assert np.any(np.abs(np.asarray(Phi)[4:7, OMEGA_RING]) > 1e-6)  # the ring's speed moves the rotor
 
