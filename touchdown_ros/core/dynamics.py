@@ -151,7 +151,7 @@ def _ring_torque(model: Model, c: _ContactState, ring_speed: Array) -> Array:
 def contact_forces(model: Model, xi: Array) -> ContactForces:
     """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
     c = _contact_state(model, xi)
-    if model.law.friction == "spinning_ring":
+    if spins_ring(model):
         F_n, F_t, F_z, torque = ring_friction(model.law, model.rig, c.speed, xi[OMEGA_RING], *c.sliding)
     else:
         F_n, F_t, F_z = friction(model.law, c.speed, *c.sliding)
@@ -237,7 +237,7 @@ def phi(model: Model, xi: Array) -> Array:
             F_y / rig.mass + unbalance * jnp.sin(angle),
             F_z / rig.mass - rig.gravity,
         ]
-        + ([forces.ring_torque / rig.ring_inertia] if model.law.friction == "spinning_ring" else [])
+        + ([forces.ring_torque / rig.ring_inertia] if spins_ring(model) else [])
     )
 
 
