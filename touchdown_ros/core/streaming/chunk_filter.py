@@ -22,7 +22,8 @@ from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, FilterNoi
 
 ChunkFunction = Callable[[np.ndarray], Array]
 
-#: The largest state a chunk buffer's last row holds (mean, covariance row-major, then the count of real rows).
+# A chunk buffer's last row holds the prior (mean, covariance row-major) and the count of real rows; the
+# largest state is 8 (a spinning ring's).
 assert PACKED_WIDTH > 8 + 64, "a chunk buffer's row must hold the prior and the count"
 
 
