@@ -154,7 +154,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
         return law.with_friction("co_rotating_ring", law.slip_velocity) if spinning else law
 
     def screened_records(batch: Batch) -> Batch:
-        return with_state_size(batch, STATE_SIZE)
+        return with_state_size(batch, STATE_SIZE) if spinning else batch
 
     def describe(x: np.ndarray) -> str:
         """f0 (the first free coordinates) and, when there are two more at the end, the support."""
