@@ -281,9 +281,8 @@ def ring_speed_after(model: Model, xi: Array, h: float) -> Array:
     """
     J = model.rig.ring_inertia
     w0 = xi[OMEGA_RING]
-    held_model, held_xi = jax.lax.stop_gradient((model, xi))
-    held = _contact_state(held_model, held_xi)
-    start = held_xi[OMEGA_RING]
+    c = _contact_state(model, xi)
+    held_model, held, start = jax.lax.stop_gradient((model, c, w0))
 
     def residual(w: Array) -> tuple[Array, Array]:
         T, dT = jax.jvp(lambda u: _ring_torque(held_model, held, u), (w,), (jnp.ones_like(w),))
@@ -300,7 +299,6 @@ def ring_speed_after(model: Model, xi: Array, h: float) -> Array:
         return lo, hi, jnp.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
 
     root = jax.lax.fori_loop(0, RING_NEWTON_STEPS, iterate, (lo, hi, 0.5 * (lo + hi)))[2]
-    c = _contact_state(model, xi)
     T, dT = jax.jvp(lambda u: _ring_torque(model, c, u), (root,), (jnp.ones_like(root),))
     return root - (root - w0 - h * T / J) / (1.0 - h * dT / J)
 
