@@ -342,6 +342,9 @@ def test_centres_are_placed_over_the_contact_samples():
 
 #: Peak force within this share of the truth on a held-out bag, after `touchdown train` with defaults.
 PEAK_TOLERANCE = 0.10
+#: Force RMSE (vector, over the drop) within this share of the larger true peak.
+FORCE_RMSE_TOLERANCE = 0.05
+RING_FORCE_RMSE_TOLERANCE = 0.02
 
 
 #: The family rigs of the train-then-estimate test and the friction each is trained with (stiff_quiet
@@ -417,6 +420,12 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth
     assert abs(truth["peak_radial_force_error"]) < PEAK_TOLERANCE, truth
+    # the force over the whole drop: RMSE of the force vector within the 5 % of the larger peak;
+    # with the ring's state within 2 %, whirl included, where a rolling ring's friction turns on slips of
+    # 0.01 m/s (0.9 % on this bag; 3.7 % with the ring's Q at 1 (rad/s)^2 per sample)
+    peak = max(truth["peak_axial_force_true_N"], truth["peak_radial_force_true_N"])
+    tolerance = RING_FORCE_RMSE_TOLERANCE if TRAINED_RIGS[v.name] == "spinning_ring" else FORCE_RMSE_TOLERANCE
+    assert np.linalg.norm(truth["rmse_contact_force_N"]) <= tolerance * peak, truth
     assert max(bag["rmse_displacement_m"]) < 1.2 * sigma
     preload, span = document["contact"]["support_preload"], document["contact"]["support_span"]
     if v.name == "stiff_quiet":
