@@ -416,6 +416,9 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     smoothing, scale = document["training"]["smoothing_noise"], document["filter"]["smoothing_noise_scale"]
     assert 0.02 <= scale <= 3.0 and smoothing["scale"] == pytest.approx(scale, rel=1e-3)
     assert smoothing["leave_one_out_error_um"]["chosen"] <= smoothing["leave_one_out_error_um"]["fitted_q"]
+    # a factor other than 1 only for a fall of the squared residual beyond its standard error
+    fall = smoothing["best_factor_fall_um2"]
+    assert scale == 1.0 or fall["mean"] > fall["standard_error"], smoothing
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from touchdown_ros.core.ekf import Belief, Measurement, ekf, inverse_and_det_3x3, model_measurement, rts_smoother
@@ -39,17 +40,35 @@ def leave_one_out_residuals(measure: Measurement, smoothed: Belief, etas: Array,
 
 
 @jax.jit
-def leave_one_out_error(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
-    """Root mean square (m) of the leave-one-out residuals over the batch's valid samples and axes:
-    filter and smoother of every record with `noise`, each with its effects' gates."""
+def leave_one_out_squares(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
+    """(records, N) m^2: each sample's squared leave-one-out residual, summed over the axes, 0 where the
+    sample is not valid: filter and smoother of every record with `noise`, each with its effects' gates."""
     R = jnp.diag(noise.measurement)
 
-    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> tuple[Array, Array]:
+    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> Array:
         gated = model._replace(effects=model.effects.with_gates(gates))
         smoothed = rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas))
         residuals = leave_one_out_residuals(model_measurement(gated), smoothed, etas, R)
-        squares = jnp.where(valid[:, None], residuals * residuals, 0.0)
-        return jnp.sum(squares), jnp.sum(valid) * OUTPUT_SIZE
+        return jnp.where(valid, jnp.sum(residuals * residuals, axis=1), 0.0)
 
-    total, count = jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
-    return jnp.sqrt(jnp.sum(total) / jnp.sum(count))
+    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+
+
+#: Samples per block for the standard error of a mean over a record (1 ms at 10 kHz is 10 samples;
+#: 100 spans the smoothed residuals' correlation, a few samples, many times over).
+BLOCK_SAMPLES = 100
+
+
+def mean_fall_and_standard_error(before: np.ndarray, after: np.ndarray, valid: np.ndarray,
+                                 block: int = BLOCK_SAMPLES) -> tuple[float, float]:
+    """The mean per valid sample of before - after ((records, N) arrays, e.g. squared residuals) and its
+    standard error, from the means of consecutive blocks of `block` samples of each record (the samples'
+    correlation stays inside a block). The standard error is inf with fewer than two blocks."""
+    blocks = []
+    for difference, ok in zip(np.asarray(before) - np.asarray(after), np.asarray(valid, dtype=bool)):
+        values = difference[ok]
+        blocks.extend(values[i : i + block] for i in range(0, len(values) - block + 1, block))
+    if len(blocks) < 2:
+        return float("nan"), float("inf")
+    means = np.asarray([b.mean() for b in blocks])
+    return float(means.mean()), float(means.std(ddof=1) / np.sqrt(len(means)))

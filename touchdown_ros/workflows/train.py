@@ -25,9 +25,9 @@ from touchdown_ros.core.calibration import (
 )
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.pkbkr import Whitening, coloured, whitened, whitening
-from touchdown_ros.core.smoothing import leave_one_out_error
+from touchdown_ros.core.smoothing import leave_one_out_squares, mean_fall_and_standard_error
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
-from touchdown_ros.core.types import Coefficients, FilterNoise, Model
+from touchdown_ros.core.types import OUTPUT_SIZE, Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
@@ -284,25 +284,36 @@ class SmoothingScale(NamedTuple):
     error_at_one: float | None  # m, leave-one-out smoothing error with the fitted Q
     error: float | None  # m, ... with Q times scale
     how: str
+    fall: float | None = None  # m^2, mean fall per sample of the squared residual at the best factor found
+    fall_standard_error: float | None = None  # m^2, its standard error (`core.smoothing.mean_fall_and_standard_error`)
 
     def as_dict(self) -> dict:
         def um(value: float | None) -> float | None:
             return None if value is None else round(value * 1e6, 5)
 
         errors = {"fitted_q": um(self.error_at_one), "chosen": um(self.error)}
-        return {"scale": round(self.scale, 4), "how": self.how, "leave_one_out_error_um": errors}
+        chosen = {"scale": round(self.scale, 4), "how": self.how, "leave_one_out_error_um": errors}
+        if self.fall is not None:
+            chosen["best_factor_fall_um2"] = {"mean": round(self.fall * 1e12, 6),
+                                              "standard_error": round(self.fall_standard_error * 1e12, 6)}
+        return chosen
 
 
 def choose_smoothing_scale(
     model: Model, noise: FilterNoise, h: float, batch: Batch, stream=STDERR
 ) -> SmoothingScale:
     """The factor s on Q (within SMOOTHING_SCALE_RANGE) of the lowest leave-one-out smoothing error on
-    the training records (`core.smoothing`), by a bounded scalar search on ln s, with progress."""
+    the training records (`core.smoothing`), by a bounded scalar search on ln s, with progress. The
+    fitted Q (s = 1) stays unless the best factor's fall of the squared residual exceeds its standard
+    error: a fall within the noise of the cross-validation would only move the bands."""
     started = time.perf_counter()
+    valid = np.asarray(batch.valid)
+    squares: dict[float, np.ndarray] = {}
 
     def error(log_scale: float) -> float:
         scaled = noise._replace(process=np.asarray(noise.process) * np.exp(log_scale))
-        value = float(leave_one_out_error(model, scaled, h, batch))
+        squares[log_scale] = np.asarray(leave_one_out_squares(model, scaled, h, batch))
+        value = float(np.sqrt(squares[log_scale].sum() / (valid.sum() * OUTPUT_SIZE)))
         print(
             f"[smoothing noise] Q x{np.exp(log_scale):.3g}: leave-one-out error {value * 1e6:.4f} um  "
             f"{time.perf_counter() - started:.1f} s elapsed",
@@ -314,11 +325,23 @@ def choose_smoothing_scale(
     at_one = error(0.0)
     low, high = (float(np.log(v)) for v in SMOOTHING_SCALE_RANGE)
     found = minimize_scalar(error, bounds=(low, high), method="bounded", options={"xatol": SMOOTHING_SCALE_TOLERANCE})
-    scale, best = (float(np.exp(found.x)), float(found.fun)) if found.fun < at_one else (1.0, at_one)
+    if float(found.x) not in squares:
+        error(float(found.x))
+    fall, standard_error = mean_fall_and_standard_error(squares[0.0], squares[float(found.x)], valid)
     how = f"cross-validation: the lowest leave-one-out smoothing error of Q x{SMOOTHING_SCALE_RANGE[0]:g}..x" \
           f"{SMOOTHING_SCALE_RANGE[1]:g} on the training bags"
-    print(f"[smoothing noise] the offline estimate uses Q x{scale:.3g} ({how})", file=stream, flush=True)
-    return SmoothingScale(scale, at_one, best, how)
+    if found.fun < at_one and fall > standard_error:
+        scale, best = float(np.exp(found.x)), float(found.fun)
+    else:
+        scale, best = 1.0, at_one
+        how += f", the fitted Q: Q x{np.exp(found.x):.3g}'s fall is within its standard error"
+    print(
+        f"[smoothing noise] the offline estimate uses Q x{scale:.3g} ({how}; the best factor's fall of the squared "
+        f"residual {fall * 1e12:.4g} +- {standard_error * 1e12:.2g} um^2 per sample)",
+        file=stream,
+        flush=True,
+    )
+    return SmoothingScale(scale, at_one, best, how, fall, standard_error)
 
 
 def train(
