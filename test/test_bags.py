@@ -270,6 +270,50 @@ def test_fast_reader_equals_per_message_deserialisation(tmp_path, monkeypatch, m
         assert got.covariance.tobytes() == want_covariance.tobytes() == covariance.tobytes()
 
 
+def test_angular_series_fill_the_angular_part_and_read_back_from_it(tmp_path, monkeypatch):
+    """A rate (twist.angular) or torque series: rosbags' messages hold it in the angular part and its
+    covariance in the angular block of the 6x6, zeros elsewhere; read back with angular=True bit-exactly
+    (fast path and per-message fallback), the linear part zero."""
+    rng = np.random.default_rng(5)
+    stamps = START + 100_000 * np.arange(40, dtype=np.int64)
+    rates = rng.standard_normal((40, 3)) * 500.0  # rad/s
+    covariance = rng.standard_normal((40, 3, 3))
+    series = [
+        TopicSeries("/rate", "TwistWithCovarianceStamped", stamps, rates, covariance, frame_id="amb", angular=True),
+        TopicSeries("/torque", "WrenchStamped", stamps, rates * 2.0, frame_id="amb", angular=True),
+    ]
+    path = write_bag(tmp_path / "bag", series)
+    for raw, rate, block in zip(raw_messages(path, "/rate"), rates, covariance):
+        twist = TYPESTORE.deserialize_cdr(raw, MESSAGE_TYPES["TwistWithCovarianceStamped"]).twist
+        angular, linear = twist.twist.angular, twist.twist.linear
+        assert [angular.x, angular.y, angular.z] == rate.tolist() and [linear.x, linear.y, linear.z] == [0.0] * 3
+        full = np.zeros((6, 6))
+        full[3:, 3:] = block
+        assert np.asarray(twist.covariance).tobytes() == full.ravel().tobytes()
+    for raw, rate in zip(raw_messages(path, "/torque"), rates):
+        wrench = TYPESTORE.deserialize_cdr(raw, MESSAGE_TYPES["WrenchStamped"]).wrench
+        assert [wrench.torque.x, wrench.torque.y, wrench.torque.z] == (2.0 * rate).tolist()
+        assert [wrench.force.x, wrench.force.y, wrench.force.z] == [0.0] * 3
+
+    def check(read_back):
+        for s in series:
+            back = read_back(s.topic)
+            assert back.angular and back.stamps_ns.tobytes() == stamps.tobytes(), s.topic
+            assert back.values.tobytes() == s.values.tobytes(), s.topic
+            assert (back.covariance is None) == (s.covariance is None)
+            if s.covariance is not None:
+                assert back.covariance.tobytes() == s.covariance.tobytes()
+
+    check(lambda topic: read_vector_topic(path, topic, angular=True))
+    linear = read_vector_topic(path, "/rate")
+    assert not linear.angular and not linear.values.any() and not linear.covariance.any()
+    monkeypatch.setattr(cdr, "decode", lambda *args: None)  # rosbags, message by message
+    check(lambda topic: read_vector_topic(path, topic, angular=True))
+    points = write_bag(tmp_path / "points", [TopicSeries("/p", "PointStamped", stamps, rates)])
+    with pytest.raises(BagError, match="PointStamped, which has no angular part"):
+        read_vector_topic(points, "/p", angular=True)
+
+
 @pytest.mark.parametrize(
     "frame_ids, little_endian",
     [(["a", "bb", "a", "ccc"] * 5, True), (["ab", "cd"] * 10, True), ([""] * 20, False)],
@@ -481,6 +525,7 @@ def test_invalid_series_are_refused_before_anything_is_written(tmp_path):
             TopicSeries("/x", "TwistWithCovarianceStamped", stamps, xyz, np.zeros((30, 6, 6))),
             r"covariance must be \(30, 3, 3\)",
         ),
+        (TopicSeries("/x", "Vector3Stamped", stamps, xyz, angular=True), "Vector3Stamped has no angular part"),
     ]
     good = TopicSeries("/amb/displacement", "PointStamped", stamps, xyz)
     for bad, message in cases:

@@ -215,6 +215,28 @@ def test_raw_messages_match_rclpy_serialisation(frame_id):
         messages.decode_point(b"\x00\x01\x00\x00\x01")
 
 
+def test_an_angular_rate_fills_twist_angular_and_its_covariance_entry_35():
+    """A rate about z published as TwistWithCovarianceStamped (the ring's speed): rclpy reads it in
+    twist.angular.z and its variance in covariance[35] (row-major 6x6), every other value zero."""
+    from geometry_msgs.msg import TwistWithCovarianceStamped
+
+    stamps = np.array([42, 1_700_000_000_123_456_789], np.int64)
+    rates = np.array([[0.0, 0.0, 523.5], [0.0, 0.0, -1.25]])  # rad/s
+    covariance = np.zeros((2, 3, 3))
+    covariance[:, 2, 2] = [0.01, 4.0]
+    blobs = messages.encode_stamped("TwistWithCovarianceStamped", stamps, rates, covariance, "amb_sensor",
+                                    angular=True)
+    for blob, stamp, rate, variance in zip(blobs, stamps, rates[:, 2], covariance[:, 2, 2]):
+        message = deserialize_message(blob, TwistWithCovarianceStamped)
+        assert messages.stamp_ns_of(message.header.stamp) == stamp and message.header.frame_id == "amb_sensor"
+        twist = message.twist.twist
+        assert (twist.angular.x, twist.angular.y, twist.angular.z) == (0.0, 0.0, rate)
+        assert (twist.linear.x, twist.linear.y, twist.linear.z) == (0.0, 0.0, 0.0)
+        expected = np.zeros(36)
+        expected[35] = variance
+        np.testing.assert_array_equal(np.asarray(message.twist.covariance), expected)
+
+
 def test_points_decoded_at_once_equal_one_by_one():
     """decode_points: the usual stream at once, anything else (another frame_id, truncated) one by one, in order."""
     rng = np.random.default_rng(3)

@@ -55,14 +55,16 @@ class DisplacementSeries:
 
 @dataclass(frozen=True)
 class VectorSeries:
-    """A stamped 3-vector topic (point, vector, force, linear twist or acceleration)."""
+    """A stamped 3-vector topic (point, vector, force, linear twist or acceleration; with `angular`
+    the torque, angular twist or acceleration)."""
 
     topic: str
     msgtype: str  # full name, e.g. geometry_msgs/msg/PointStamped
     stamps_ns: np.ndarray  # (N,) int64, header.stamp
     values: np.ndarray  # (N, 3) float64
-    covariance: np.ndarray | None  # (N, 3, 3) linear block, *WithCovarianceStamped only
+    covariance: np.ndarray | None  # (N, 3, 3) block of values in the 6x6, *WithCovarianceStamped only
     frame_id: str = ""  # of the first message
+    angular: bool = False  # values are the angular part of the message (rad/s for a twist), not the linear
 
 
 @dataclass(frozen=True)
@@ -83,8 +85,9 @@ class TopicSeries:
     msgtype: str  # a key of MESSAGE_TYPES (or its full name)
     stamps_ns: np.ndarray  # (N,) int64
     values: np.ndarray  # (N, 3)
-    covariance: np.ndarray | None = None  # (N, 3, 3) linear block, *WithCovarianceStamped only
+    covariance: np.ndarray | None = None  # (N, 3, 3) block of values in the 6x6, *WithCovarianceStamped only
     frame_id: str = ""
+    angular: bool = False  # values fill the angular part (torque, angular twist or acceleration), the linear zero
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -127,8 +130,9 @@ def _float64_block(msg: Any, msgtype: str) -> list[float]:
     raise AssertionError(msgtype)
 
 
-def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any) -> VectorSeries:
-    """VectorSeries of a topic's raw CDR messages: whole-array fast path, else rosbags per message."""
+def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any, angular: bool = False) -> VectorSeries:
+    """VectorSeries of a topic's raw CDR messages (their angular part with `angular`): whole-array fast
+    path, else rosbags per message."""
     k = cdr.FLOAT64_COUNT[msgtype]
     frame_id = ""
     decoded = None
@@ -143,25 +147,26 @@ def _decode_topic(topic: str, msgtype: str, raws: list[bytes], store: Any) -> Ve
         messages = [store.deserialize_cdr(raw, msgtype) for raw in raws]
         stamps = np.array([_stamp_ns(m.header) for m in messages], dtype=np.int64)
         block = np.array([_float64_block(m, msgtype) for m in messages], dtype=np.float64).reshape(-1, k)
-    return VectorSeries(topic, msgtype, stamps, *cdr.vector_and_covariance(msgtype, block), frame_id)
+    return VectorSeries(topic, msgtype, stamps, *cdr.vector_and_covariance(msgtype, block, angular), frame_id, angular)
 
 
 def _read_topics(
-    path: str | Path, topics: Iterable[str], expected: dict[str, str] | None = None
+    path: str | Path, topics: Iterable[str], expected: dict[str, str] | None = None, angular: Iterable[str] = ()
 ) -> tuple[dict[str, str], dict[str, VectorSeries]]:
     """(every topic -> type, the wanted topics present in the bag), in one pass over the bag.
 
     expected maps a topic to the only full type accepted for it; otherwise any MESSAGE_TYPES type.
+    The topics in `angular` are read from their messages' angular part.
     """
     path = _existing(path)
-    wanted, expected = set(topics), expected or {}
+    wanted, expected, angular = set(topics), expected or {}, set(angular)
     try:
         with AnyReader([path], default_typestore=TYPESTORE) as reader:
             available: dict[str, set[str]] = {}
             for c in reader.connections:
                 available.setdefault(c.topic, set()).add(c.msgtype)
             for topic in wanted & available.keys():
-                _check_topic_type(path, topic, available[topic], expected.get(topic))
+                _check_topic_type(path, topic, available[topic], expected.get(topic), topic in angular)
             connections = [c for c in reader.connections if c.topic in wanted]
             for c in connections:
                 if (encoding := getattr(c.ext, "serialization_format", "ros1")) != "cdr":
@@ -170,7 +175,10 @@ def _read_topics(
             if connections:  # AnyReader.messages(connections=[]) would yield every message of the bag
                 for connection, _, raw in reader.messages(connections=connections):
                     raws[connection.topic].append(raw)
-            found = {t: _decode_topic(t, next(iter(available[t])), r, reader.typestore) for t, r in raws.items()}
+            found = {
+                t: _decode_topic(t, next(iter(available[t])), r, reader.typestore, t in angular)
+                for t, r in raws.items()
+            }
     except BagError:
         raise
     except Exception as error:  # rosbags/mcap/lz4/yaml raise many types for corrupt or truncated files
@@ -178,7 +186,7 @@ def _read_topics(
     return {t: ", ".join(sorted(m)) for t, m in sorted(available.items())}, found
 
 
-def _check_topic_type(path: Path, topic: str, msgtypes: set[str], expected: str | None) -> None:
+def _check_topic_type(path: Path, topic: str, msgtypes: set[str], expected: str | None, angular: bool) -> None:
     if len(msgtypes) > 1:
         raise BagError(f"{path}: topic {topic} carries several message types: {', '.join(sorted(msgtypes))}")
     (msgtype,) = msgtypes
@@ -189,6 +197,8 @@ def _check_topic_type(path: Path, topic: str, msgtypes: set[str], expected: str 
             f"{path}: topic {topic} has type {msgtype}, not a stamped 3-vector type this package reads "
             f"({', '.join(MESSAGE_TYPES.values())})"
         )
+    if angular and cdr.FLOAT64_COUNT[msgtype] < 6:
+        raise BagError(f"{path}: topic {topic} has type {msgtype}, which has no angular part to read")
 
 
 def list_topics(path: str | Path) -> dict[str, str]:
@@ -258,10 +268,16 @@ def validate_displacement(series: DisplacementSeries, limit: float = MILLIMETRE_
         raise BagError(f"{series.path}: topic {series.topic}: " + "; ".join(problems))
 
 
-def read_vector_topic(path: str | Path, topic: str, msgtype: str | None = None) -> VectorSeries | None:
-    """A stamped 3-vector topic of a bag (any of MESSAGE_TYPES, or only msgtype); None when absent."""
+def read_vector_topic(
+    path: str | Path, topic: str, msgtype: str | None = None, angular: bool = False
+) -> VectorSeries | None:
+    """A stamped 3-vector topic of a bag (any of MESSAGE_TYPES, or only msgtype); None when absent.
+
+    angular: read the angular part (e.g. `twist.angular`, rad/s, and its covariance block) instead of
+    the linear; BagError for a type without one.
+    """
     expected = {topic: cdr.full_type(msgtype)} if msgtype else None
-    return _read_topics(path, [topic], expected)[1].get(topic)
+    return _read_topics(path, [topic], expected, [topic] if angular else ())[1].get(topic)
 
 
 def read_truth(
@@ -319,7 +335,8 @@ def encode_series(series: TopicSeries) -> np.ndarray:
     """(N, size) uint8: the CDR messages of a topic, row i = message i (checks the series first)."""
     check_series(series)
     msgtype = cdr.full_type(series.msgtype)
-    return cdr.encode(series.stamps_ns, cdr.float64_block(msgtype, series.values, series.covariance), series.frame_id)
+    block = cdr.float64_block(msgtype, series.values, series.covariance, series.angular)
+    return cdr.encode(series.stamps_ns, block, series.frame_id)
 
 
 def check_series(series: TopicSeries) -> None:
@@ -339,6 +356,8 @@ def check_series(series: TopicSeries) -> None:
             raise ValueError(f"{where}: a covariance is given but {msgtype} has none")
         if np.shape(series.covariance) != (n, 3, 3):
             raise ValueError(f"{where}: covariance must be ({n}, 3, 3), got {np.shape(series.covariance)}")
+    if series.angular and cdr.FLOAT64_COUNT[msgtype] < 6:
+        raise ValueError(f"{where}: angular values but {msgtype} has no angular part")
     if n and (stamps.min() < 0 or stamps.max() >= 2**31 * cdr.NS_PER_S):
         raise ValueError(f"{where}: stamps must lie in [0, 2^31 s) ns (log times are unsigned, seconds int32)")
 

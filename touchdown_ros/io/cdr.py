@@ -10,7 +10,8 @@ Twist/AccelWithCovarianceStamped), in bags and on the live topics, is laid out i
 
 so with one frame_id all messages of a topic have the same size and are encoded or
 decoded as a numpy record array at once. `float64_block` and `vector_and_covariance` say
-which float64 values each type holds. Pure numpy: no rosbags, no ROS.
+which float64 values each type holds, and which of them a 3-vector fills: the linear part, or the
+angular part of the types that have one (a rotation rate in `twist.angular`). Pure numpy: no rosbags, no ROS.
 """
 from __future__ import annotations
 
@@ -175,25 +176,44 @@ def decode_each(messages: Sequence[bytes], float64_count: int, kind: str = "mess
     return np.array(stamps, np.int64), np.array(values, np.float64).reshape(-1, float64_count), errors
 
 
-def float64_block(msgtype: str, vector: np.ndarray, covariance: np.ndarray | None = None) -> np.ndarray:
+def _part(msgtype: str, angular: bool) -> slice:
+    """The float64 values of the 3-vector a topic fills: the linear part (the point, vector, force,
+    linear twist or acceleration) or, with `angular`, the angular part (torque, angular twist or
+    acceleration) of the types that have one."""
+    if not angular:
+        return slice(0, 3)
+    if FLOAT64_COUNT[msgtype] < 6:
+        raise ValueError(f"{msgtype} has no angular part")
+    return slice(3, 6)
+
+
+def float64_block(
+    msgtype: str, vector: np.ndarray, covariance: np.ndarray | None = None, angular: bool = False
+) -> np.ndarray:
     """(N, k) float64 values of messages of `msgtype` holding vector (N, 3): the point, vector, force
     (torque zero) or linear twist / acceleration (angular zero, covariance (N, 3, 3) in the linear
-    block of the 6x6, zeros elsewhere)."""
+    block of the 6x6, zeros elsewhere); with `angular`, the torque or angular twist / acceleration
+    instead (linear zero, covariance in the angular block)."""
     vector = np.asarray(vector, dtype=np.float64)
     n, msgtype = len(vector), full_type(msgtype)
     count = FLOAT64_COUNT[msgtype]
+    part = _part(msgtype, angular)
     if count == 3:
         return vector
     block = np.zeros((n, count))
-    block[:, :3] = vector
+    block[:, part] = vector
     if msgtype in COVARIANCE_TYPES and covariance is not None:
-        block[:, 6:].reshape(n, 6, 6)[:, :3, :3] = covariance
+        block[:, 6:].reshape(n, 6, 6)[:, part, part] = covariance
     return block
 
 
-def vector_and_covariance(msgtype: str, block: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """The (N, 3) vector of `float64_block` values and, for the covariance types, the (N, 3, 3) linear block."""
+def vector_and_covariance(
+    msgtype: str, block: np.ndarray, angular: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The (N, 3) vector of `float64_block` values and, for the covariance types, its (N, 3, 3) block of
+    the 6x6: the linear ones, or with `angular` the angular ones."""
+    part = _part(full_type(msgtype), angular)
     covariance = None
     if full_type(msgtype) in COVARIANCE_TYPES:
-        covariance = block[:, 6:].reshape(-1, 6, 6)[:, :3, :3].copy()
-    return np.ascontiguousarray(block[:, :3]), covariance
+        covariance = block[:, 6:].reshape(-1, 6, 6)[:, part, part].copy()
+    return np.ascontiguousarray(block[:, part]), covariance

@@ -43,11 +43,12 @@ def float64_count(msgtype: str) -> int:
 
 
 def encode_stamped(msgtype: str, stamps_ns: np.ndarray, vector: np.ndarray, covariance: np.ndarray | None,
-                   frame_id: str) -> list[bytes]:
-    """Serialized messages of `msgtype`, one per row of vector (n, 3) (and covariance (n, 3, 3)), stamped (n,) ns."""
+                   frame_id: str, angular: bool = False) -> list[bytes]:
+    """Serialized messages of `msgtype`, one per row of vector (n, 3) (and covariance (n, 3, 3)), stamped (n,) ns;
+    the vector in the linear part, or with `angular` the angular part (`io.cdr.float64_block`)."""
     if len(stamps_ns) == 0:
         return []
-    return cdr.serialized(cdr.encode(stamps_ns, cdr.float64_block(msgtype, vector, covariance), frame_id))
+    return cdr.serialized(cdr.encode(stamps_ns, cdr.float64_block(msgtype, vector, covariance, angular), frame_id))
 
 
 def decode_point(data: bytes) -> tuple[int, float, float, float]:
