@@ -29,7 +29,7 @@ from touchdown_ros.cli import main as touchdown
 from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io import cdr
-from touchdown_ros.io.bags import TopicSeries, read_vector_topic, write_bag
+from touchdown_ros.io.bags import TopicSeries, list_topics, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
 from touchdown_ros.workflows.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
@@ -330,6 +330,9 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert peer.count("clock_jump_backward") == 1 and peer.count("batch_messages") == -(-n_samples // 100)
         assert peer.value(LAST, "end_reason") == "clock_jump" and peer.value(CONTACT, "drops") == "2"
         assert peer.count("gaps") == 0 and peer.count("rejected") == 0
+        # the paper's friction has no ring's speed: the node does not advertise its topic
+        assert peer.node.count_publishers(CONFIG.topics.velocity) == 1
+        assert peer.node.count_publishers(CONFIG.topics.ring_speed) == 0
         assert node.alive()
 
     for bag_out in (recorded, recorded_batched):
@@ -355,18 +358,52 @@ def fifo_allowed() -> bool:
     return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
 
 
-def assert_recorded_estimates(bag: Path, estimate, source: str) -> None:
-    """The /touchdown/* topics recorded in `bag` equal the offline filtered estimate (stamps exactly, values to
-    1e-9)."""
-    topics = estimate_topics(estimate, CONFIG, FILTERED)
-    assert CONFIG.topics.contact_force_std in [series.topic for series in topics]
+def assert_recorded_estimates(bag: Path, estimate, source: str, config=CONFIG) -> None:
+    """The /touchdown/* topics recorded in `bag` are those of config's friction model and equal the offline
+    filtered estimate (stamps exactly, values to 1e-9)."""
+    topics = estimate_topics(estimate, config, FILTERED)
+    names = [series.topic for series in topics]
+    assert config.topics.contact_force_std in names
+    assert (config.topics.ring_speed in names) == (config.law.friction == "spinning_ring")
+    assert sorted(list_topics(bag)) == sorted(names)
     for series in topics:
-        got = read_vector_topic(bag, series.topic)
+        got = read_vector_topic(bag, series.topic, angular=series.angular)
         assert got is not None and got.msgtype.endswith(series.msgtype), series.topic
         np.testing.assert_array_equal(got.stamps_ns, series.stamps_ns, err_msg=f"{series.topic} ({source})")
         assert_close(got.values, np.asarray(series.values), series.topic)
         if series.covariance is not None:
             assert_close(got.covariance, np.asarray(series.covariance), series.topic + " covariance")
+
+
+def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
+    """contact.friction: spinning_ring in the rig YAML of the node and the replayer: the node advertises
+    /touchdown/ring_speed (TwistWithCovarianceStamped) and the recording holds it with the other topics, equal
+    to `touchdown estimate --filtered`'s ring speed and variance."""
+    rig = Path(RIG).read_text()
+    assert rig.count("friction: paper ") == 1
+    ring_rig = tmp_path / "ring_rig.yaml"
+    ring_rig.write_text(rig.replace("friction: paper ", "friction: spinning_ring "))
+    config = load_config(ring_rig)
+    assert config.law.friction == "spinning_ring" and config.topics == CONFIG.topics
+    bag, source = drop_bag(tmp_path / "drop")
+    expected = estimate_bag(config, bag, estimator_for(config)).estimate
+    recorded = tmp_path / "live"
+    d = domain(2)
+    with Peer(d) as peer, NodeProcess(tmp_path, d, ["--config", str(ring_rig), "--ros-args", *FAST_NODE]) as node:
+        peer.wait_ready(node)
+        assert peer.wait_for(lambda: peer.node.count_publishers(config.topics.ring_speed) == 1, 5)
+        ring_types = dict(peer.node.get_topic_names_and_types())[config.topics.ring_speed]
+        assert ring_types == ["geometry_msgs/msg/TwistWithCovarianceStamped"]
+        replay = subprocess.run(
+            [sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), "--config", str(ring_rig),
+             "--record", str(recorded), "--timeout", "30"],
+            env=ros_env(d), capture_output=True, text=True, timeout=240,
+        )
+        assert replay.returncode == 0, f"{replay.stdout}\n{replay.stderr}\nnode:\n{node.log()}"
+        assert node.alive()
+    assert_recorded_estimates(recorded, expected, source, config)
+    ring = read_vector_topic(recorded, config.topics.ring_speed, angular=True)
+    assert abs(ring.values[-1, 2] - config.rig.speed) < 0.01 * config.rig.speed  # spun up to the rotor's speed
 
 
 @pytest.mark.parametrize("receive,output_mode", [("callback", "per_sample"), ("inline", "per_sample"),

@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import contact_forces_and_jacobian, measurement
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
-from touchdown_ros.core.types import VELOCITY, Coefficients, ContactForces, FilterNoise, Model
+from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, FilterNoise, Model
 
 
 class SampleGrid(NamedTuple):
@@ -37,6 +37,19 @@ class SignalSet(NamedTuple):
     force_cov: Array  # (N, 3, 3) N^2, covariance of force_xyz: J P J^T, J = d force_xyz / d state
     radial_contact: Array  # (N,) bool
     axial_contact: Array
+
+    @property
+    def ring_speed(self) -> np.ndarray:
+        """(N,) rad/s: a spinning ring's speed, the state's eighth column (NaN when the state has none),
+        as `StreamOutput.ring_speed`."""
+        state = np.asarray(self.state)
+        return state[:, OMEGA_RING] if state.shape[1] > OMEGA_RING else np.full(len(state), np.nan)
+
+    @property
+    def ring_speed_std(self) -> np.ndarray:
+        """(N,) rad/s: the 1-sigma of `ring_speed` (NaN when the state has no ring)."""
+        cov = np.asarray(self.state_cov)
+        return np.sqrt(cov[:, OMEGA_RING, OMEGA_RING]) if cov.shape[1] > OMEGA_RING else np.full(len(cov), np.nan)
 
 
 class Estimate(NamedTuple):

@@ -38,6 +38,8 @@ class Topics:
     contact_force: str = "/touchdown/contact_force"
     contact_force_std: str = "/touchdown/contact_force_std"  # Vector3Stamped, N, 1-sigma per sensor axis
     displacement_estimate: str = "/touchdown/displacement"
+    # TwistWithCovarianceStamped, twist.angular.z: rad/s about sensor z, contact.friction: spinning_ring only
+    ring_speed: str = "/touchdown/ring_speed"
     truth_velocity: str = "/truth/velocity"
     truth_acceleration: str = "/truth/acceleration"
     truth_contact_force: str = "/truth/contact_force"

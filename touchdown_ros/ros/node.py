@@ -44,7 +44,7 @@ from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.core.streaming import StreamEvent, StreamingEstimator, StreamOutput
 from touchdown_ros.io.config import Config, ConfigError, config_from_parameters, load_config
-from touchdown_ros.io.estimate_topics import ESTIMATE_TOPICS
+from touchdown_ros.io.estimate_topics import published_topics
 from touchdown_ros.ros import messages
 from touchdown_ros.ros.inbox import Inbox
 from touchdown_ros.ros.health import DiagnosticsState, LatencyHistogram, statuses
@@ -103,7 +103,7 @@ class EstimatorNode(Node):
                     self.create_publisher(messages.message_class(topic.msgtype), getattr(topics, topic.name), out_qos),
                     topic,
                 )
-                for topic in ESTIMATE_TOPICS
+                for topic in published_topics(self.config.law)  # the ring's speed only with a spinning ring
             ]
         if self.batched:
             self.pub_batch = self.create_publisher(PointCloud2, node.batch_output_topic, out_qos)
@@ -330,7 +330,8 @@ class EstimatorNode(Node):
                         if publisher.get_subscription_count()]
             if listened:
                 blobs = [messages.encode_stamped(topic.msgtype, stamps, topic.vector(out),
-                                                 topic.covariance and topic.covariance(out), self.frame_id)
+                                                 topic.covariance and topic.covariance(out), self.frame_id,
+                                                 topic.angular)
                          for _, topic in listened]
                 with contextlib.ExitStack() as handles:
                     for publisher, _ in listened:

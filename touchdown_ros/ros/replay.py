@@ -10,7 +10,8 @@ batches of N samples on the node's batch topic instead. `--record OUT` subscribe
 to the node's /touchdown/* topics, waits until the estimate of the last replayed
 stamp has arrived on every topic (or `--timeout`), and writes them to a new
 rosbag2 MCAP bag with `io.bags.write_bag`: the same topics and types as
-`touchdown estimate` writes offline.
+`touchdown estimate` writes offline (the ring's speed with `contact.friction: spinning_ring`,
+in the rig YAML or in the coefficient file its `node.coefficients` names, as the node reads them).
 """
 from __future__ import annotations
 
@@ -31,8 +32,9 @@ from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.io import cdr
 from touchdown_ros.io.config import Config, ConfigError, load_config
-from touchdown_ros.io.estimate_topics import ESTIMATE_TOPICS
+from touchdown_ros.io.estimate_topics import published_topics
 from touchdown_ros.ros import messages
+from touchdown_ros.ros.node_model import load_node_model
 from touchdown_ros.ros.runtime import make_executor, qos, spin
 
 EXIT_OK, EXIT_USAGE, EXIT_BAD_INPUT, EXIT_INCOMPLETE = 0, 2, 3, 4
@@ -47,18 +49,20 @@ class _Track:
     stamps: list[int] = field(default_factory=list)
     values: list[tuple[float, ...]] = field(default_factory=list)
     frame_id: str = ""
+    angular: bool = False  # the values of interest are the messages' angular part
 
 
 class Recorder:
-    """Raw subscriptions to the node's estimate topics; decoded values kept in arrival order."""
+    """Raw subscriptions to the node's estimate topics under config's contact law (`published_topics`);
+    decoded values kept in arrival order."""
 
     def __init__(self, node: Node, config: Config, reliability: str = "reliable", depth: int = 10000):
         self.tracks: dict[str, _Track] = {}
         self.subscriptions = []
         self.last_message = 0.0
-        for estimate_topic in ESTIMATE_TOPICS:
+        for estimate_topic in published_topics(config.law):
             topic, msgtype = getattr(config.topics, estimate_topic.name), estimate_topic.msgtype
-            track = _Track(topic, msgtype, frame_id=config.topics.frame_id)
+            track = _Track(topic, msgtype, frame_id=config.topics.frame_id, angular=estimate_topic.angular)
             self.tracks[topic] = track
             on_message = self._callback(track, messages.float64_count(msgtype))
             self.subscriptions.append(node.create_subscription(messages.message_class(msgtype), topic, on_message,
@@ -74,7 +78,11 @@ class Recorder:
         return on_message
 
     def connected(self) -> bool:
-        return all(s.get_publisher_count() > 0 for s in self.subscriptions)
+        return not self.unpublished()
+
+    def unpublished(self) -> list[str]:
+        """The recorded topics nobody publishes yet."""
+        return [s.topic_name for s in self.subscriptions if s.get_publisher_count() == 0]
 
     def reached(self, stamp_ns: int) -> bool:
         """Every topic has a message stamped at or after stamp_ns."""
@@ -94,8 +102,9 @@ class Recorder:
                 len(stamps), messages.float64_count(track.msgtype)
             )
             stamps, first = np.unique(stamps, return_index=True)
-            vector, covariance = cdr.vector_and_covariance(track.msgtype, block[first])
-            out.append(TopicSeries(track.topic, track.msgtype, stamps, vector, covariance, frame_id=track.frame_id))
+            vector, covariance = cdr.vector_and_covariance(track.msgtype, block[first], track.angular)
+            out.append(TopicSeries(track.topic, track.msgtype, stamps, vector, covariance, frame_id=track.frame_id,
+                                   angular=track.angular))
         return out
 
 
@@ -194,7 +203,8 @@ def replay(
         if not wait_until(lambda: publisher.get_subscription_count() > 0, discovery_timeout):
             raise TimeoutError(f"no subscriber on {publisher.topic_name} after {discovery_timeout:.0f} s")
         if recorder and not wait_until(recorder.connected, discovery_timeout):
-            raise TimeoutError(f"the estimate topics have no publisher after {discovery_timeout:.0f} s")
+            raise TimeoutError(f"no publisher on {', '.join(recorder.unpublished())} after {discovery_timeout:.0f} s "
+                               "(is the node running with this rig's topics and contact.friction?)")
         time.sleep(0.5)  # let the other side finish matching before the first sample
         seconds = pace(offsets, publish_until)
         log(f"published {len(stamps_ns)} samples in {seconds:.2f} s ({len(stamps_ns) / max(seconds, 1e-9):.0f}/s)")
@@ -235,6 +245,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _ignore(message: str) -> None:
+    """Drop a message the node reports itself (a refused coefficient file)."""
+
+
 def replay_main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `touchdown replay` (and `python -m touchdown_ros.ros.replay`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -254,6 +268,8 @@ def replay_main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, BagError, FileNotFoundError, ValueError) as error:
         print(f"touchdown replay: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    if args.record:  # the contact law the node runs (its coefficient file's) says which topics it publishes
+        config = load_node_model(config, _ignore, _ignore).config
     for problem in displacement_problems(series):  # replayed as recorded: the node counts and reports them
         print(f"touchdown replay: warning: {args.bag}: {problem}", file=sys.stderr)
     if len(series.stamps_ns) == 0:

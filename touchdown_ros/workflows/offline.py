@@ -310,8 +310,8 @@ def within_two_std(force_xyz: np.ndarray, force_cov: np.ndarray, true_force: np.
 
 def estimate_topics(estimate: Estimate, config: Config, answer: str = SMOOTHED) -> list[TopicSeries]:
     """The `/touchdown/...` topics of an estimate (smoothed or filtered), as the live node publishes
-    them (the node's are the filtered ones)."""
-    return estimate_series(answer_of(estimate, answer), estimate.stamps_ns, config.topics)
+    them (the node's are the filtered ones); the ring's speed with a spinning ring (config.law)."""
+    return estimate_series(answer_of(estimate, answer), estimate.stamps_ns, config.topics, config.law)
 
 
 #: Offline output topic marking the rows without a usable measurement (input policy): Vector3Stamped, one
