@@ -48,8 +48,8 @@ def test_leave_one_out_residuals_equal_refitting_without_each_sample():
 
 
 def test_mean_fall_and_its_standard_error_come_from_block_means_of_the_valid_samples():
-    """The fall before - after per valid sample, and its standard error from the means of blocks of
-    consecutive valid samples of each record (a short last block left out), as computed by hand."""
+    """The fall before - after per valid sample (all of them), and its standard error from the means of
+    blocks of consecutive valid samples of each record (a short last block left out), as computed by hand."""
     rng = np.random.default_rng(5)
     before, after = rng.normal(1.0, 0.3, (2, 250)), rng.normal(0.9, 0.3, (2, 250))
     valid = np.ones((2, 250), dtype=bool)
@@ -57,9 +57,10 @@ def test_mean_fall_and_its_standard_error_come_from_block_means_of_the_valid_sam
     fall, standard_error = mean_fall_and_standard_error(before, after, valid, block=100)
     d0, d1 = before[0] - after[0], (before[1] - after[1])[valid[1]]
     means = np.array([d0[:100].mean(), d0[100:200].mean(), d1[:100].mean(), d1[100:200].mean()])
-    assert fall == pytest.approx(means.mean())
+    assert fall == pytest.approx(np.concatenate([d0, d1]).mean())
     assert standard_error == pytest.approx(means.std(ddof=1) / 2.0)
     # a constant fall of many standard errors is told from one within the noise
     assert mean_fall_and_standard_error(before, before - 0.5, valid, block=100) == pytest.approx((0.5, 0.0), abs=1e-12)
     # fewer than two blocks: no standard error to tell by
-    assert mean_fall_and_standard_error(before[:1, :150], after[:1, :150], valid[:1, :150], block=100)[1] == np.inf
+    few = mean_fall_and_standard_error(before[:1, :150], after[:1, :150], valid[:1, :150], block=100)
+    assert few == (pytest.approx(d0[:150].mean()), np.inf)

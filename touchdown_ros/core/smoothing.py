@@ -54,21 +54,21 @@ def leave_one_out_squares(model: Model, noise: FilterNoise, h: float, batch: Bat
     return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
 
 
-#: Samples per block for the standard error of a mean over a record (1 ms at 10 kHz is 10 samples;
-#: 100 spans the smoothed residuals' correlation, a few samples, many times over).
+#: Samples per block for the standard error of a mean over records (10 ms at 10 kHz). The smoothed
+#: residuals stay correlated over tens of samples: on soft_bearing's training bags the standard error of
+#: a fall grows 1.3x from single samples to blocks of 10, 2.5x to 100 and 2.7x to 400 (docs/calibration.md).
 BLOCK_SAMPLES = 100
 
 
 def mean_fall_and_standard_error(before: np.ndarray, after: np.ndarray, valid: np.ndarray,
                                  block: int = BLOCK_SAMPLES) -> tuple[float, float]:
-    """The mean per valid sample of before - after ((records, N) arrays, e.g. squared residuals) and its
-    standard error, from the means of consecutive blocks of `block` samples of each record (the samples'
-    correlation stays inside a block). The standard error is inf with fewer than two blocks."""
-    blocks = []
-    for difference, ok in zip(np.asarray(before) - np.asarray(after), np.asarray(valid, dtype=bool)):
-        values = difference[ok]
-        blocks.extend(values[i : i + block] for i in range(0, len(values) - block + 1, block))
-    if len(blocks) < 2:
-        return float("nan"), float("inf")
-    means = np.asarray([b.mean() for b in blocks])
-    return float(means.mean()), float(means.std(ddof=1) / np.sqrt(len(means)))
+    """The mean over the valid samples of before - after ((records, N) arrays, e.g. squared residuals)
+    and its standard error by batch means: the spread of the means of consecutive blocks of `block`
+    valid samples of each record (the samples' correlation stays inside a block; a last, shorter block
+    left out). The standard error is inf with fewer than two blocks."""
+    differences = [d[ok] for d, ok in zip(np.asarray(before) - np.asarray(after), np.asarray(valid, dtype=bool))]
+    means = np.asarray([d[i : i + block].mean() for d in differences for i in range(0, len(d) - block + 1, block)])
+    fall = float(np.concatenate(differences).mean()) if any(len(d) for d in differences) else float("nan")
+    if len(means) < 2:
+        return fall, float("inf")
+    return fall, float(means.std(ddof=1) / np.sqrt(len(means)))
