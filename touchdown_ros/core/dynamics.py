@@ -67,7 +67,7 @@ def friction(
     """
     if law.friction == "paper":  # static: the law's friction model is pytree aux data
         return F_nR, mu * F_nR + k_ZR * F_zZ, F_zZ - mu * jnp.sign(zdot) * F_nR
-    if law.friction == "spinning_ring":
+    if law.spins_ring:
         raise ValueError("friction against a spinning ring needs its speed: use ring_friction")
     v = law.slip_velocity
     slip_t = whirl - speed * r
@@ -151,7 +151,7 @@ def _ring_torque(model: Model, c: _ContactState, ring_speed: Array) -> Array:
 def contact_forces(model: Model, xi: Array) -> ContactForces:
     """F_n, F_t, F_z on the rotor at state xi (eq. 5-8), with the PKBKR parameters of eq. 9."""
     c = _contact_state(model, xi)
-    if spins_ring(model):
+    if model.law.spins_ring:
         F_n, F_t, F_z, torque = ring_friction(model.law, model.rig, c.speed, xi[OMEGA_RING], *c.sliding)
     else:
         F_n, F_t, F_z = friction(model.law, c.speed, *c.sliding)
@@ -237,7 +237,7 @@ def phi(model: Model, xi: Array) -> Array:
             F_y / rig.mass + unbalance * jnp.sin(angle),
             F_z / rig.mass - rig.gravity,
         ]
-        + ([forces.ring_torque / rig.ring_inertia] if spins_ring(model) else [])
+        + ([forces.ring_torque / rig.ring_inertia] if model.law.spins_ring else [])
     )
 
 
@@ -303,11 +303,6 @@ def ring_speed_after(model: Model, xi: Array, h: float) -> Array:
     return root - (root - w0 - h * T / J) / (1.0 - h * dT / J)
 
 
-def spins_ring(model: Model) -> bool:
-    """Whether the ring's speed is a state (static: the law's friction model)."""
-    return model.law.friction == "spinning_ring"
-
-
 def _ring_held(model: Model) -> Callable[[Array], Array]:
     """phi with the ring's speed held (its row zero): the rotor's part of a step."""
     return lambda state: phi(model, state).at[OMEGA_RING].set(0.0)
@@ -316,7 +311,7 @@ def _ring_held(model: Model) -> Callable[[Array], Array]:
 def rk4_step(model: Model, xi: Array, h: float) -> Array:
     """f of eq. 15: one RK4 step of phi, of length h (s). With a spinning ring its speed is updated
     first (`ring_speed_after`) and held through the rotor's RK4 step."""
-    if spins_ring(model):
+    if model.law.spins_ring:
         return rk4(_ring_held(model), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
     return rk4(lambda state: phi(model, state), xi, h)
 
@@ -367,7 +362,7 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
     updated implicitly first (`rk4_step`); Phi_k is the held RK4 step's times `ring_update_jacobian`
     (about a third of `transition_jacobian`'s cost).
     """
-    if spins_ring(model):
+    if model.law.spins_ring:
         held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
         mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, _ring_held(model))
         return mean, Phi @ ring_update_jacobian(model, held, h), *phi_and_jacobian(model, xi)

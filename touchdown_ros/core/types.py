@@ -123,9 +123,14 @@ class ContactLaw(NamedTuple):
         return FRICTION_MODELS[self.friction_model]
 
     @property
+    def spins_ring(self) -> bool:
+        """Whether the inner ring's speed is a state (static: the friction model is aux data)."""
+        return self.friction == "spinning_ring"
+
+    @property
     def state_size(self) -> int:
         """Length of the state xi under this law: 7, or 8 when the ring's speed is a state."""
-        return STATE_SIZE + (self.friction == "spinning_ring")
+        return STATE_SIZE + self.spins_ring
 
     @property
     def label(self) -> str:

@@ -297,7 +297,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         scale_Z=scale.copy(),
     )
     measurement_sigma = read.number("filter.measurement_noise", positive=True)
-    ring = law.state_size > STATE_SIZE
+    ring = law.spins_ring
     ring_q = read.number("filter.ring_process_noise", RING_PROCESS_NOISE, non_negative=True)
     ring_p0 = read.number("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE, non_negative=True)
     rotor_q = read.numbers("filter.process_noise", STATE_SIZE, non_negative=True)

@@ -12,7 +12,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from touchdown_ros.core.estimate import force_std
-from touchdown_ros.core.types import STATE_SIZE, ContactLaw
+from touchdown_ros.core.types import ContactLaw
 from touchdown_ros.io.bags import TopicSeries
 from touchdown_ros.io.config import Topics
 
@@ -65,7 +65,7 @@ ESTIMATE_TOPICS = (
 def published_topics(law: ContactLaw) -> tuple[EstimateTopic, ...]:
     """The estimate topics under a contact law: `ESTIMATE_TOPICS`, the ring's speed only when the
     law's friction model makes it a state (spinning_ring)."""
-    has_ring = law.state_size > STATE_SIZE
+    has_ring = law.spins_ring
     return tuple(topic for topic in ESTIMATE_TOPICS if has_ring or not topic.ring)
 
 

@@ -144,7 +144,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     # With the ring's speed as a state the loss far from the rig's constants is rough (the ring sticks
     # and slips as they move): the laws are screened with the ring turning with the rotor (its speed
     # no state), a smooth loss, and the chosen one refined with the ring's state from there.
-    spinning = config.law.friction == "spinning_ring"
+    spinning = config.law.spins_ring
     screen_noise = noise._replace(process=noise.process[:STATE_SIZE], initial=noise.initial[:STATE_SIZE])
     if spinning:
         print("contact laws screened with the ring turning with the rotor, refined with its speed as a state",

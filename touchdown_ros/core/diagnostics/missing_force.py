@@ -12,7 +12,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
-from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, spins_ring, unbalance_change
+from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, unbalance_change
 from touchdown_ros.core.ekf import (
     Belief,
     Transition,
@@ -40,7 +40,7 @@ def augmented_transition(model: Model, h: float) -> Transition:
     stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd). A
     spinning ring's speed is updated first and held, as in `rk4_step`."""
     mass, size = model.rig.mass, model.law.state_size
-    spinning = spins_ring(model)
+    spinning = model.law.spins_ring
 
     def phi_aug(s: Array) -> Array:
         rate = phi(model, s[:size]).at[VELOCITY].add(s[size:] / mass)

@@ -57,7 +57,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
     size = len(noise.process)
     prior_slice, count_column = prior_columns(size)
-    ring = size > STATE_SIZE
+    ring = model.law.spins_ring
     measure = model_measurement(model)
     model_variance = force_model_variance(model, noise, sample_period)
 
