@@ -436,6 +436,12 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
         # stage 1 chooses a yielding support with the knee inside the impacts' range (BIC) and Hertz 1.5
         assert "support yields above" in calibration["law"] and calibration["law"].startswith("hertz n=1.5")
         assert 25e3 < preload < 46e3 and preload + span < 60e3
+        # displacements tell the knee better than the span: the file carries the support's uncertainty, and
+        # the force band at the axial peak carries it too, so that the peak's error lies within 1.96 sigma
+        (var_preload, _), (_, var_span) = document["contact"]["support_log_covariance"]
+        assert var_preload > 0.0 and var_span > 0.0
+        peak_error = abs(truth["peak_axial_force_error"]) * truth["peak_axial_force_true_N"]
+        assert peak_error <= 1.96 * bag["peak_axial_force_std_N"], (peak_error, bag["peak_axial_force_std_N"])
     elif v.name == "soft_bearing":
         assert preload == float("inf")  # its impacts (26 kN) stay below the knee: the rigid support wins
     # the yielding finalist's law is refined rigid too only where the support does not act (soft_bearing)

@@ -101,6 +101,22 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
             load_coefficients(rigid, CONFIG)
 
 
+def test_file_carries_the_supports_covariance_and_refuses_a_bad_one(tmp_path):
+    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4, ((6.25, -57.5), (-57.5, 530.0)))
+    path = saved_with_law(tmp_path / "c.yaml", law)  # loads back equal, covariance included
+    document = yaml.safe_load(path.read_text())
+    assert document["contact"]["support_log_covariance"] == [[6.25, -57.5], [-57.5, 530.0]]
+    del document["contact"]["support_log_covariance"]  # a file of before: the support taken as exact
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert not load_coefficients(path, CONFIG).config(CONFIG).law.support_uncertain
+    bad = ([[1.0, 2.0], [2.0, 1.0]], [[1.0, 0.5], [0.4, 1.0]], [[1.0, float("nan")], [0.0, 1.0]], [1.0, 2.0], "x")
+    for covariance in bad:  # not positive semi-definite, not symmetric, not finite, not 2 x 2
+        document["contact"]["support_log_covariance"] = covariance
+        path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=r"contact\.support_log_covariance must be"):
+            load_coefficients(path, CONFIG)
+
+
 def test_file_carries_its_friction_and_refuses_a_bad_one(tmp_path):
     path = saved_with_law(tmp_path / "c.yaml", ContactLaw.of("hertz", 1.5).with_friction("co_rotating_ring", 0.03))
     document = yaml.safe_load(path.read_text())

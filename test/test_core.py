@@ -9,6 +9,7 @@ from conftest import central_differences
 from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import (
+    contact_force_xyz,
     contact_forces,
     contact_forces_and_jacobian,
     phi,
@@ -367,6 +368,35 @@ def test_a_yielding_support_passes_the_face_force_up_to_its_preload_then_creeps_
     assert contact_forces(rigid, jnp.asarray(xi)) == contact_forces(
         rigid._replace(law=rigid.law.with_support()), jnp.asarray(xi)
     )
+
+
+@pytest.mark.parametrize("case", ["axial", "both"])
+def test_the_force_band_carries_the_supports_uncertainty_above_its_knee_only(case):
+    xi, P = np.array(CASES[case]), known_covariance(3)
+    F_zZ = -NOMINAL.k_Z * (xi[2] + RIG.axial_clearance) - NOMINAL.c_Z * xi[6]
+    log_covariance = ((0.04, -0.05), (-0.05, 0.09))  # ln preload, ln span: sd 0.2 and 0.3, correlation -0.83
+    rigid = make_model()
+    for preload in (0.5 * F_zZ, 2.0 * F_zZ):  # the face force above the knee, and below it
+        span = 0.3 * F_zZ
+        exact = rigid._replace(law=rigid.law.with_support(preload, span))
+        uncertain = rigid._replace(law=rigid.law.with_support(preload, span, log_covariance))
+        assert uncertain.law.support_uncertain and not exact.law.support_uncertain
+
+        def force_xyz(log_scale):
+            law = exact.law.with_support(preload * math.exp(log_scale[0]), span * math.exp(log_scale[1]))
+            return contact_force_xyz(contact_forces(exact._replace(law=law), jnp.asarray(xi)))
+
+        J = central_differences(force_xyz, np.zeros(2), [1e-6, 1e-6])
+        belief = Belief(jnp.asarray(xi)[None], jnp.asarray(P)[None])
+        added = np.asarray(signals(uncertain, belief).force_cov - signals(exact, belief).force_cov)[0]
+        by_hand = J @ np.asarray(log_covariance) @ J.T
+        if preload > F_zZ:  # below the knee the support passes the force as it is: nothing to add
+            assert np.all(added == 0.0)
+        else:
+            assert by_hand[2, 2] > (0.01 * F_zZ) ** 2  # the axial sd grows by more than 1 % of the face force
+            np.testing.assert_allclose(added, by_hand, rtol=1e-6, atol=1e-9 * by_hand[2, 2])
+    # a rigid support carries none, whatever covariance the law holds
+    assert not rigid.law._replace(support_log_covariance=log_covariance).support_uncertain
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -7,6 +7,7 @@ reference is the offline path on the same samples: `to_grid` -> `DropDetector.on
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import jax
@@ -141,6 +142,25 @@ def test_stream_equals_offline(chunk_filter, record, reference, kind):
     assert counts.received == counts.accepted == counts.rows == len(record[0])
     assert counts.estimated == len(reference.stamps_ns)
     assert sum(counts.rejected.values()) == counts.gaps == counts.drops - 1 == 0
+
+
+def test_stream_carries_the_supports_uncertainty_as_offline(record, reference):
+    """A support yielding at half the drop's face-force peak, its (ln preload, ln span) uncertain: the live
+    force band equals the offline one and is wider than with the support exact where the support yields."""
+    knee = 0.5 * float(np.max(np.asarray(reference.filtered.F_z)))
+    exact = dataclasses.replace(CONFIG, law=CONFIG.law.with_support(knee, knee))
+    config = dataclasses.replace(CONFIG, law=CONFIG.law.with_support(knee, knee, ((0.04, -0.05), (-0.05, 0.09))))
+    model = config.model()
+    estimator = StreamingEstimator(
+        model, config.noise, config.stream_settings(chunk_sizes=(128,)),
+        make_chunk_filter(model, config.noise, config.sample_period),
+    )
+    out, _ = estimate_stream(estimator, *record, None)
+    uncertain = offline(*record, config=config)
+    assert_same(out, uncertain)
+    variance = np.asarray(uncertain.filtered.force_cov)[:, 2, 2]
+    widened = variance - np.asarray(offline(*record, config=exact).filtered.force_cov)[:, 2, 2]
+    assert widened.min() >= -1e-9 * variance.max() and np.sqrt(widened.max()) > 0.01 * knee
 
 
 def test_touchdown_summary_and_force_alarm(chunk_filter, record, reference):

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces_and_jacobian, measurement, phi
+from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces, contact_forces_and_jacobian, measurement, phi
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
@@ -156,14 +156,35 @@ def force_model_variance(model: Model, noise: FilterNoise, sample_period: float)
     return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
-def force_covariance(forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None) -> Array:
+def support_force_covariance(model: Model, xi: Array) -> Array:
+    """(3, 3) N^2: the contact force's covariance at xi from the axial support's uncertainty,
+    J_s C J_s^T with J_s the force's derivative by (ln preload, ln span) and C the law's
+    `support_log_covariance`. Zero below the support's knee (there the force does not depend on it)."""
+    law = model.law
+    log_covariance = jnp.asarray(law.support_log_covariance)
+
+    def force(log_scale: Array) -> Array:
+        scaled = law.with_support(
+            law.support_preload * jnp.exp(log_scale[0]), law.support_span * jnp.exp(log_scale[1]),
+            law.support_log_covariance,
+        )
+        return contact_force_xyz(contact_forces(model._replace(law=scaled), xi))
+
+    J_support = jax.jacfwd(force)(jnp.zeros(2))
+    return J_support @ log_covariance @ J_support.T
+
+
+def force_covariance(
+    forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None, support_part: Array | None = None
+) -> Array:
     """(3, 3) N^2: the force's covariance through its Jacobian (J P J^T), plus `model_variance`
-    on the diagonal while a contact is on (out of contact the force is zero and known to be)."""
-    state_part = J_force @ cov @ J_force.T
-    if model_variance is None:
-        return state_part
-    in_contact = jnp.logical_or(forces.radial_contact, forces.axial_contact)
-    return state_part + jnp.where(in_contact, jnp.diag(model_variance), 0.0)
+    on the diagonal while a contact is on (out of contact the force is zero and known to be),
+    plus `support_part` (`support_force_covariance`) when given."""
+    covariance = J_force @ cov @ J_force.T
+    if model_variance is not None:
+        in_contact = jnp.logical_or(forces.radial_contact, forces.axial_contact)
+        covariance = covariance + jnp.where(in_contact, jnp.diag(model_variance), 0.0)
+    return covariance if support_part is None else covariance + support_part
 
 
 def signals(model: Model, states: Belief, model_variance: Array | None = None) -> SignalSet:
@@ -175,7 +196,8 @@ def signals(model: Model, states: Belief, model_variance: Array | None = None) -
         acceleration = phi(model, mean)[VELOCITY]
         J = jax.jacfwd(lambda s: phi(model, s)[VELOCITY])(mean)
         forces, J_force = contact_forces_and_jacobian(model, mean)
-        return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance)
+        support_part = support_force_covariance(model, mean) if model.law.support_uncertain else None
+        return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance, support_part)
 
     acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)
     return SignalSet(

@@ -74,6 +74,9 @@ class ContactLaw(NamedTuple):
     floored: float = 0.0  # 1: the force never pulls; 0: as printed
     support_preload: float = float("inf")  # N, face force above which the axial support yields; inf: rigid
     support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
+    #: covariance of (ln P, ln S) as stage 1 left it (displacements say little about a support beyond
+    #: the knee, docs/calibration.md); the force band carries it (`estimate.support_force_covariance`)
+    support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
     friction_model: int = 0  # index into FRICTION_MODELS; 0: the paper's
     slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
 
@@ -104,10 +107,17 @@ class ContactLaw(NamedTuple):
         """Whether the axial support yields (a finite preload)."""
         return math.isfinite(float(self.support_preload))
 
-    def with_support(self, preload: float = float("inf"), span: float = float("inf")) -> "ContactLaw":
+    def with_support(
+        self, preload: float = float("inf"), span: float = float("inf"), log_covariance=((0.0, 0.0), (0.0, 0.0))
+    ) -> "ContactLaw":
         """The same law with an axial support preloaded to `preload` (N; inf: rigid) that passes at most
-        preload + span (N)."""
-        return self._replace(support_preload=preload, support_span=span)
+        preload + span (N), known to `log_covariance` ((2, 2), of ln preload and ln span; zero: exactly)."""
+        return self._replace(support_preload=preload, support_span=span, support_log_covariance=log_covariance)
+
+    @property
+    def support_uncertain(self) -> bool:
+        """Whether the support yields and its preload or span carries an uncertainty (static: concrete values)."""
+        return self.yields and any(float(v) != 0.0 for row in self.support_log_covariance for v in row)
 
     def with_friction(self, friction: str, slip_velocity: float = 0.01) -> "ContactLaw":
         """The same law with friction `friction` (one of FRICTION_MODELS) regularised below `slip_velocity` m/s."""

@@ -110,6 +110,8 @@ def save_coefficients(
             "exponent": float(config.law.exponent),
             "support_preload": float(config.law.support_preload),  # N; .inf: a rigid axial support
             "support_span": float(config.law.support_span),  # N, it passes at most preload + span
+            # covariance of (ln preload, ln span) from stage 1; the force band carries it above the knee
+            "support_log_covariance": [[float(v) for v in row] for row in config.law.support_log_covariance],
             "friction": config.law.friction,
             "slip_velocity": float(config.law.slip_velocity),  # m/s
             "units": _contact_units(config),
@@ -284,6 +286,20 @@ def _array(
     return array
 
 
+def _support_log_covariance(path: Path, contact: Mapping[str, Any]) -> tuple[tuple[float, float], ...]:
+    """contact.support_log_covariance: a symmetric positive semi-definite (2, 2) covariance of ln preload
+    and ln span; absent (files before 2026-11-26): zero, the support taken as exact."""
+    if "support_log_covariance" not in contact:
+        return ((0.0, 0.0), (0.0, 0.0))
+    covariance = _array(path, {"contact": contact}, "contact.support_log_covariance", (2, 2))
+    symmetric = np.allclose(covariance, covariance.T)
+    if not symmetric or np.linalg.eigvalsh(covariance).min() < -1e-9 * np.abs(covariance).max():
+        raise CoefficientFileError(
+            f"{path}: contact.support_log_covariance must be a symmetric positive semi-definite 2 x 2 matrix"
+        )
+    return tuple(tuple(float(v) for v in row) for row in covariance)
+
+
 def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) -> Config:
     """The rig with the file's contact law and constants, kernel and filter noise."""
     contact = document.get("contact")
@@ -298,7 +314,7 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         raise CoefficientFileError(
             f"{path}: contact.support_preload and contact.support_span must be numbers > 0 N (.inf: rigid)"
         )
-    law = law.with_support(float(preload), float(span))
+    law = law.with_support(float(preload), float(span), _support_log_covariance(path, contact))
     slip_velocity = contact.get("slip_velocity", 0.01)  # files before friction models: the paper's friction
     if isinstance(slip_velocity, bool) or not isinstance(slip_velocity, (int, float)):
         raise CoefficientFileError(f"{path}: contact.slip_velocity must be a number > 0 m/s")

@@ -357,7 +357,10 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
-    law = law.with_support(float(model.law.support_preload), float(model.law.support_span))
+    law = law.with_support(
+        float(model.law.support_preload), float(model.law.support_span),
+        support_log_covariance(coordinates.names, sd, correlation),
+    )
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
@@ -369,6 +372,18 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+def support_log_covariance(
+    names: Sequence[str], sd: np.ndarray, correlation: np.ndarray
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(2, 2) posterior covariance of ln preload and ln span among stage 1's coordinates `names`
+    (sd and correlation from `information_standard_errors`); zero where the support was not fitted."""
+    if not all(n in names for n in SUPPORT_NAMES):
+        return ((0.0, 0.0), (0.0, 0.0))
+    index = [list(names).index(n) for n in SUPPORT_NAMES]
+    block = np.asarray(correlation)[np.ix_(index, index)] * np.outer(sd[index], sd[index])
+    return tuple(tuple(float(v) for v in row) for row in block)
 
 
 class Stage1Batches(NamedTuple):
