@@ -174,8 +174,8 @@ def _nested_force_equivalent(effect, model, xi, params):
 
     change = effect.function(xi, params, model.rig)
     change_velocity, change_acceleration = jax.jvp(change_rate, (xi,), (rate(xi),))
-    shift = jnp.concatenate([change, jnp.zeros(1), change_velocity])
-    return model.rig.mass * (change_acceleration - jax.jvp(lambda s: rate(s)[4:], (xi,), (shift,))[1])
+    shift = jnp.concatenate([change, jnp.zeros(1), change_velocity, jnp.zeros(len(xi) - 7)])  # the ring: unshifted
+    return model.rig.mass * (change_acceleration - jax.jvp(lambda s: rate(s)[4:7], (xi,), (shift,))[1])
 
 
 def _speed_force(effect, model, xi, params):
@@ -202,19 +202,22 @@ def _z_curvature(xi, p, rig):
     return jnp.stack([0.0 * xi[0], 0.0 * xi[0], p["a"] * xi[0] ** 2])
 
 
-def test_library_regressors_share_phi_and_equal_the_nested_definition():
+@pytest.mark.parametrize("friction", ["paper", "spinning_ring"])
+def test_library_regressors_share_phi_and_equal_the_nested_definition(friction):
     """`library_regressors` computes phi and its Jacobian once per state for every measurement effect;
     each force equivalent (and its parameter Jacobian) equals the nested-derivative definition, for the
-    sensor errors and for a nonlinear user effect (its second derivative enters), free and in contact."""
+    sensor errors and for a nonlinear user effect (its second derivative enters), free and in contact;
+    with the ring's speed as an eighth state too (the brake's force is written out for the paper's friction)."""
     from touchdown_ros.core.diagnostics.regressors import effect_regressors, library_regressors
 
-    model = load_config().model()
+    model = load_config(overrides={"contact.friction": friction}).model()
     states = jnp.array([
-        [1e-4, -0.5e-4, -1e-4, 0.3, 0.01, -0.02, -0.05],  # free
-        [1.5e-4, 1.6e-4, -1e-4, 1.1, 0.03, -0.01, 0.02],  # radial contact
-        [-2.0e-4, 0.9e-4, -3.1e-4, 4.0, -0.04, 0.03, 0.01],  # both contacts
-    ])
-    effects = {name: fx.LIBRARY[name] for name in ("sensor_gain_x", "sensor_offset_z", "axial_load", "brake_decay")}
+        [1e-4, -0.5e-4, -1e-4, 0.3, 0.01, -0.02, -0.05, 100.0],  # free
+        [1.5e-4, 1.6e-4, -1e-4, 1.1, 0.03, -0.01, 0.02, 300.0],  # radial contact
+        [-2.0e-4, 0.9e-4, -3.1e-4, 4.0, -0.04, 0.03, 0.01, 500.0],  # both contacts
+    ])[:, : model.law.state_size]
+    names = ("sensor_gain_x", "sensor_offset_z", "axial_load") + (("brake_decay",) if friction == "paper" else ())
+    effects = {name: fx.LIBRARY[name] for name in names}
     effects["z_curvature"] = _z_curvature
     together = library_regressors(effects, states, model)
     for name, effect in effects.items():

@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 from touchdown_ros.core.diagnostics.missing_force import model_force
 from touchdown_ros.core.dynamics import phi
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
-from touchdown_ros.core.types import VELOCITY, Model
+from touchdown_ros.core.types import STATE_SIZE, VELOCITY, Model
 
 
 def coefficient_regressors(model: Model, states: Array) -> Array:
@@ -71,7 +71,8 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
     change_velocity = change_rate(xi)
     curvature = jax.jvp(change_rate, (xi,), (at.rate,))[1]  # phi^T H_D phi
     change_acceleration = curvature + jax.jacfwd(change)(xi) @ (at.A @ at.rate)
-    shift = jnp.concatenate([change(xi), jnp.zeros(1, xi.dtype), change_velocity])
+    # theta and a spinning ring's speed (the state's tail) are not what the sensor reads: unshifted
+    shift = jnp.concatenate([change(xi), jnp.zeros(1, xi.dtype), change_velocity, jnp.zeros(len(xi) - STATE_SIZE)])
     return mass * (change_acceleration - at.A[VELOCITY] @ shift)
 
 
