@@ -134,8 +134,10 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     fit_q = kind == "nll"
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
-    # support rigid (held) or yielding (free).
-    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(RIGID_LOG_SUPPORT))
+    # support rigid or as given (held), or yielding (free).
+    given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
+    held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
+    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support))
     coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False))
 
     def law_model(law: ContactLaw) -> Model:
@@ -248,7 +250,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
             screened.append(
                 Candidate(criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence)
             )
-        if settings.axial_support != "rigid":
+        if settings.axial_support in ("auto", "yielding"):
             fitted = fit_support(
                 law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
             )
