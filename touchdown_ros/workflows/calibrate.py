@@ -359,10 +359,11 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
-    law = law.with_support(
-        float(model.law.support_preload), float(model.law.support_span),
-        support_log_covariance(coordinates.names, sd, correlation),
-    )
+    if not given:  # a given support stays as the user wrote it (not through exp(ln))
+        law = law.with_support(
+            float(model.law.support_preload), float(model.law.support_span),
+            support_log_covariance(coordinates.names, sd, correlation),
+        )
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
