@@ -277,6 +277,14 @@ def test_config_reads_the_axial_support():
         load_config(overrides={"contact.support_preload": 3.0e4})  # a preload needs its span
     with pytest.raises(ConfigError, match="training.axial_support"):
         load_config(overrides={"training.axial_support": "soft"})
+    # given: the mount's data sheet in contact.*, held by training; every candidate law carries it
+    with pytest.raises(ConfigError, match="axial_support: given needs the support's contact.support_preload"):
+        load_config(overrides={"training.axial_support": "given"})
+    given = load_config(
+        overrides={"training.axial_support": "given", "contact.support_preload": 3.0e4, "contact.support_span": 1.0e4}
+    )
+    supports = [(float(c.support_preload), float(c.support_span)) for c in given.training.contact_laws]
+    assert supports == [(3.0e4, 1.0e4)] * 3
 
 
 def test_standard_errors_of_a_known_information():
@@ -449,23 +457,38 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     assert ("refined_loss" in rigid) == (v.name == "soft_bearing"), rigid
 
 
-@pytest.mark.parametrize("name", ["lossy_contact", "soft_bearing"])
-def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(name, tmp_path):
+#: The simulator's axial mount (the same on every family rig), as a user would read it off the disc
+#: springs' data sheet: preload and the force it adds at most, N.
+MOUNT = [
+    "-p", "contact.support_preload:=36000", "-p", "contact.support_span:=10000", "-p", "training.axial_support:=given"
+]
+
+
+@pytest.mark.parametrize(
+    "name, support", [("lossy_contact", "auto"), ("soft_bearing", "auto"), ("lossy_contact", "given")]
+)
+def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(name, support, tmp_path):
     """`training.search: thorough` on 3 bags, the 4th estimated: lossy_contact's impacts reach the
     simulator's support (knee 36 kN), whose knee BIC missed (axial peak 14 % high); soft_bearing's
-    (26 kN) stay below it, and its support must not win by the screening's unequal fits."""
+    (26 kN) stay below it, and its support must not win by the screening's unequal fits. Given from
+    the mount's data sheet, the support is held and carried as exact."""
     v = variant(name)
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=4, seed=0)
     rig = write_rig_yaml(v, tmp_path / "bags", overwrite=True)
     coeffs = tmp_path / "c.yaml"
-    thorough = ["--config", str(rig), "-p", "training.search:=thorough"]
+    thorough = ["--config", str(rig), "-p", "training.search:=thorough", *(MOUNT if support == "given" else [])]
     assert main(["train", *map(str, bags[:3]), *thorough, "-o", str(coeffs), "--steps", "0"]) == 0
     est = tmp_path / "est"
     assert main(["estimate", str(bags[3]), *thorough, "--coeffs", str(coeffs), "-o", str(est), "--no-figures"]) == 0
     summary = json.loads((est / "summary.json").read_text())
     truth = (next(iter(summary["bags"].values())) if "bags" in summary else summary[0])["truth"]
-    preload = yaml.safe_load(coeffs.read_text())["contact"]["support_preload"]
-    if name == "lossy_contact":
+    contact = yaml.safe_load(coeffs.read_text())["contact"]
+    preload = contact["support_preload"]
+    if support == "given":
+        assert (preload, contact["support_span"]) == (36e3, 10e3)
+        assert contact["support_log_covariance"] == [[0.0, 0.0], [0.0, 0.0]]
+        assert abs(truth["peak_axial_force_error"]) < 0.05, truth
+    elif name == "lossy_contact":
         assert 30e3 < preload < 42e3
         assert abs(truth["peak_axial_force_error"]) < 0.05, truth
     else:

@@ -50,8 +50,9 @@ LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
 #: training.search: standard (the support chosen by BIC) or thorough (by AIC, with damping restarts).
 SEARCH_CHOICES = ("standard", "thorough")
-#: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding.
-SUPPORT_CHOICES = ("auto", "rigid", "yielding")
+#: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding,
+#: given (contact.support_preload and support_span as the YAML says, held: a mount's data sheet).
+SUPPORT_CHOICES = ("auto", "rigid", "yielding", "given")
 #: training.smoothing_noise: the offline estimate's Q: cross_validation (a factor on the fitted Q, chosen
 #: by the smoother's leave-one-out error) or likelihood (the fitted Q as it is, as the live filter).
 SMOOTHING_NOISE_CHOICES = ("cross_validation", "likelihood")
@@ -378,6 +379,17 @@ def _regularisation(read: ParameterReader) -> tuple[float, ...]:
     return (read.number(key, 1e-3, non_negative=True),)
 
 
+def _axial_support(read: ParameterReader, law: ContactLaw) -> str:
+    """training.axial_support; `given` needs the support in contact.* (a finite preload and span)."""
+    choice = read.choice("training.axial_support", TrainingSettings().axial_support, SUPPORT_CHOICES)
+    if choice == "given" and not law.yields:
+        raise ConfigError(
+            f"{read.source}: training.axial_support: given needs the support's contact.support_preload and "
+            "contact.support_span (N, finite: the force where the mount starts to yield, and what it adds at most)"
+        )
+    return choice
+
+
 def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettings:
     """The `training.*` keys of the two-stage identification (defaults of TrainingSettings)."""
     d = TrainingSettings()
@@ -392,6 +404,9 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         )
     except ValueError as error:
         raise ConfigError(f"{read.source}: training.contact_laws: {error}") from None
+    axial_support = _axial_support(read, law)
+    if axial_support == "given":
+        candidates = tuple(c.with_support(law.support_preload, law.support_span) for c in candidates)
     return TrainingSettings(
         loss=read.choice("training.loss", d.loss, LOSSES),
         contact_laws=candidates or (law,),
@@ -405,7 +420,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         held_out_every=read.integer("training.held_out_every", d.held_out_every, minimum=0),
         held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
         patience=read.integer("training.patience", d.patience, minimum=1),
-        axial_support=read.choice("training.axial_support", d.axial_support, SUPPORT_CHOICES),
+        axial_support=axial_support,
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
     )

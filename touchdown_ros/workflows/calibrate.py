@@ -134,8 +134,10 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     fit_q = kind == "nll"
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
-    # support rigid (held) or yielding (free).
-    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(RIGID_LOG_SUPPORT))
+    # support rigid or as given (held), or yielding (free).
+    given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
+    held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
+    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support))
     coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False))
 
     def law_model(law: ContactLaw) -> Model:
@@ -248,7 +250,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
             screened.append(
                 Candidate(criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence)
             )
-        if settings.axial_support != "rigid":
+        if settings.axial_support in ("auto", "yielding"):
             fitted = fit_support(
                 law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
             )
@@ -357,10 +359,11 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
-    law = law.with_support(
-        float(model.law.support_preload), float(model.law.support_span),
-        support_log_covariance(coordinates.names, sd, correlation),
-    )
+    if not given:  # a given support stays as the user wrote it (not through exp(ln))
+        law = law.with_support(
+            float(model.law.support_preload), float(model.law.support_span),
+            support_log_covariance(coordinates.names, sd, correlation),
+        )
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
         effects=model.effects,
