@@ -44,6 +44,18 @@ def paced(call, seconds: float) -> dict[str, float]:
             "cpu_per_period": (time.process_time() - cpu_start) / len(walls)}
 
 
+def paced_rounds(calls: dict, rounds: int, seconds: float) -> tuple[dict[str, list[dict]], float]:
+    """Each call `paced` for `seconds`, in turn, `rounds` times: name -> its runs, and the median
+    process CPU per period of the pacing loop alone (s), to subtract."""
+    results: dict[str, list[dict]] = {name: [] for name in calls}
+    idle = []
+    for _ in range(rounds):
+        idle.append(paced(lambda: None, seconds)["cpu_per_period"])
+        for name, call in calls.items():
+            results[name].append(paced(call, seconds))
+    return results, statistics.median(idle)
+
+
 def child(args: argparse.Namespace) -> None:
     import jax
 
@@ -75,13 +87,7 @@ def child(args: argparse.Namespace) -> None:
     }
     for call in calls.values():
         call()
-    results: dict[str, list[dict]] = {name: [] for name in calls}
-    idle = []
-    for _ in range(args.rounds):
-        idle.append(paced(lambda: None, args.seconds)["cpu_per_period"])
-        for name, call in calls.items():
-            results[name].append(paced(call, args.seconds))
-    idle_cpu = statistics.median(idle)
+    results, idle_cpu = paced_rounds(calls, args.rounds, args.seconds)
     print(json.dumps({
         name: {key: statistics.median(run[key] for run in runs) for key in runs[0]} | {"idle_cpu": idle_cpu}
         for name, runs in results.items()

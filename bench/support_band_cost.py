@@ -15,7 +15,7 @@ import argparse
 import statistics
 
 import numpy as np
-from chunk_dispatch import PERIOD, paced  # bench/chunk_dispatch.py
+from chunk_dispatch import PERIOD, paced_rounds  # bench/chunk_dispatch.py
 from ekf_cost import setup  # bench/ekf_cost.py
 
 from touchdown_ros.core.estimate import make_estimator
@@ -52,13 +52,7 @@ def main() -> int:
     exact, uncertain = force_variance[list(laws)[1]], force_variance[list(laws)[2]]
     widened = int(np.sum(uncertain > 1.01 * exact))
     assert widened >= SIZE // 2, "the chunk should lie above the knee, where the support widens the band"
-    results: dict[str, list[dict]] = {name: [] for name in calls}
-    idle = []
-    for _ in range(args.rounds):
-        idle.append(paced(lambda: None, args.seconds)["cpu_per_period"])
-        for name, call in calls.items():
-            results[name].append(paced(call, args.seconds))
-    idle_cpu = statistics.median(idle)
+    results, idle_cpu = paced_rounds(calls, args.rounds, args.seconds)
     base = None
     print(
         f"chunk of {SIZE} rows every {PERIOD * 1e3:.1f} ms ({widened} above the knee, their band widened), "
