@@ -443,14 +443,23 @@ def fisher_information(
     return mean_part + 0.5 * jnp.einsum("pblik,qblki->pq", spread, spread)
 
 
+def posterior_covariance(information: np.ndarray, prior_sd: np.ndarray | None = None) -> np.ndarray:
+    """Posterior covariance of stage-1 coordinates: the inverse of the data's information
+    (`stage1_information`, or N H / 2 of J's data part) plus the prior's precision, diag(1 / prior_sd^2)
+    (inf: no prior)."""
+    prior = np.zeros(len(information)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
+    return np.linalg.pinv(0.5 * (information + information.T) + np.diag(prior), hermitian=True)
+
+
 def information_standard_errors(
     information: np.ndarray, prior_sd: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior sd and correlation matrix of stage-1 coordinates: the covariance is the inverse of
-    the data's information (`stage1_information`, or N H / 2 of J's data part) plus the prior's
-    precision, diag(1 / prior_sd^2) (inf: no prior)."""
-    prior = np.zeros(len(information)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
-    covariance = np.linalg.pinv(0.5 * (information + information.T) + np.diag(prior), hermitian=True)
+    """Posterior sd and correlation matrix of stage-1 coordinates (`posterior_covariance`)."""
+    return standard_errors_and_correlation(posterior_covariance(information, prior_sd))
+
+
+def standard_errors_and_correlation(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """sd and correlation matrix of a covariance (correlation 0 where an sd is 0)."""
     sd = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.outer(sd, sd)

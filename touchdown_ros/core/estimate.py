@@ -156,11 +156,14 @@ def force_model_variance(model: Model, noise: FilterNoise, sample_period: float)
     return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
-def support_force_covariance(model: Model, xi: Array) -> Array:
+def support_force_covariance(model: Model, xi: Array) -> Array | None:
     """(3, 3) N^2: the contact force's covariance at xi from the axial support's uncertainty,
     J_s C J_s^T with J_s the force's derivative by (ln preload, ln span) and C the law's
-    `support_log_covariance`. Zero below the support's knee (there the force does not depend on it)."""
+    `support_log_covariance`. Zero below the support's knee (there the force does not depend on it);
+    None (nothing computed) when the law's support is rigid or exact (`ContactLaw.support_uncertain`)."""
     law = model.law
+    if not law.support_uncertain:
+        return None
     log_covariance = jnp.asarray(law.support_log_covariance)
 
     def force(log_scale: Array) -> Array:
@@ -179,7 +182,7 @@ def force_covariance(
 ) -> Array:
     """(3, 3) N^2: the force's covariance through its Jacobian (J P J^T), plus `model_variance`
     on the diagonal while a contact is on (out of contact the force is zero and known to be),
-    plus `support_part` (`support_force_covariance`) when given."""
+    plus `support_part` (`support_force_covariance`) unless None."""
     covariance = J_force @ cov @ J_force.T
     if model_variance is not None:
         in_contact = jnp.logical_or(forces.radial_contact, forces.axial_contact)
@@ -196,7 +199,7 @@ def signals(model: Model, states: Belief, model_variance: Array | None = None) -
         acceleration = phi(model, mean)[VELOCITY]
         J = jax.jacfwd(lambda s: phi(model, s)[VELOCITY])(mean)
         forces, J_force = contact_forces_and_jacobian(model, mean)
-        support_part = support_force_covariance(model, mean) if model.law.support_uncertain else None
+        support_part = support_force_covariance(model, mean)
         return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance, support_part)
 
     acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)

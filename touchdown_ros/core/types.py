@@ -48,6 +48,10 @@ class Nominal(NamedTuple):
     k_ZR: float  # tangential force per axial contact force, 1
 
 
+#: `ContactLaw.support_log_covariance` of a support known exactly (rigid, given, or from an older file).
+EXACT_SUPPORT = ((0.0, 0.0), (0.0, 0.0))
+
+
 class ContactLaw(NamedTuple):
     """Normal-force law of the contacts: F = k d^n + c d^m d_dot, floored at 0 where `floored`.
 
@@ -76,7 +80,7 @@ class ContactLaw(NamedTuple):
     support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
     #: covariance of (ln P, ln S) as stage 1 left it (displacements say little about a support beyond
     #: the knee, docs/calibration.md); the force band carries it (`estimate.support_force_covariance`)
-    support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
+    support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = EXACT_SUPPORT
     friction_model: int = 0  # index into FRICTION_MODELS; 0: the paper's
     slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
 
@@ -108,7 +112,7 @@ class ContactLaw(NamedTuple):
         return math.isfinite(float(self.support_preload))
 
     def with_support(
-        self, preload: float = float("inf"), span: float = float("inf"), log_covariance=((0.0, 0.0), (0.0, 0.0))
+        self, preload: float = float("inf"), span: float = float("inf"), log_covariance=EXACT_SUPPORT
     ) -> "ContactLaw":
         """The same law with an axial support preloaded to `preload` (N; inf: rigid) that passes at most
         preload + span (N), known to `log_covariance` ((2, 2), of ln preload and ln span; zero: exactly)."""

@@ -18,6 +18,7 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.effects import resolve as resolve_effect
 from touchdown_ros.core.types import (
     AXIAL_PARAMETERS,
+    EXACT_SUPPORT,
     RADIAL_PARAMETERS,
     Coefficients,
     ContactLaw,
@@ -290,7 +291,7 @@ def _support_log_covariance(path: Path, contact: Mapping[str, Any]) -> tuple[tup
     """contact.support_log_covariance: a symmetric positive semi-definite (2, 2) covariance of ln preload
     and ln span; absent (files before 2026-11-26): zero, the support taken as exact."""
     if "support_log_covariance" not in contact:
-        return ((0.0, 0.0), (0.0, 0.0))
+        return EXACT_SUPPORT
     covariance = _array(path, {"contact": contact}, "contact.support_log_covariance", (2, 2))
     symmetric = np.allclose(covariance, covariance.T)
     if not symmetric or np.linalg.eigvalsh(covariance).min() < -1e-9 * np.abs(covariance).max():

@@ -20,20 +20,21 @@ from touchdown_ros.core.calibration import (
     data_scales,
     effect_scales,
     filtered_states,
-    information_standard_errors,
     log_nominal,
+    posterior_covariance,
     sensor_noise,
     stage1_flags,
     stage1_information_over,
     stage1_model_and_noise,
     stage1_start,
     stage1_value_and_grad_over,
+    standard_errors_and_correlation,
     strongest_correlations,
 )
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
-from touchdown_ros.core.types import PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
+from touchdown_ros.core.types import EXACT_SUPPORT, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.optimise import (
     DIVERGED_LOSS,
@@ -354,7 +355,8 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     information = stage1_information_over(
         chunks, theta, coordinates.directions(), law_model(law), noise, scales, h, kind, mesh
     )
-    sd, correlation = information_standard_errors(information, coordinates.prior_sd(settings.prior_width))
+    covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width))
+    sd, correlation = standard_errors_and_correlation(covariance)
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
@@ -362,7 +364,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     if not given:  # a given support stays as the user wrote it (not through exp(ln))
         law = law.with_support(
             float(model.law.support_preload), float(model.law.support_span),
-            support_log_covariance(coordinates.names, sd, correlation),
+            support_log_covariance(coordinates.names, covariance),
         )
     return Calibration(
         config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
@@ -377,16 +379,13 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     )
 
 
-def support_log_covariance(
-    names: Sequence[str], sd: np.ndarray, correlation: np.ndarray
-) -> tuple[tuple[float, float], tuple[float, float]]:
-    """(2, 2) posterior covariance of ln preload and ln span among stage 1's coordinates `names`
-    (sd and correlation from `information_standard_errors`); zero where the support was not fitted."""
+def support_log_covariance(names: Sequence[str], covariance: np.ndarray) -> tuple[tuple[float, float], ...]:
+    """(2, 2) block of ln preload and ln span in the posterior covariance of stage 1's coordinates
+    `names`; EXACT_SUPPORT where the support was not fitted."""
     if not all(n in names for n in SUPPORT_NAMES):
-        return ((0.0, 0.0), (0.0, 0.0))
+        return EXACT_SUPPORT
     index = [list(names).index(n) for n in SUPPORT_NAMES]
-    block = np.asarray(correlation)[np.ix_(index, index)] * np.outer(sd[index], sd[index])
-    return tuple(tuple(float(v) for v in row) for row in block)
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(covariance)[np.ix_(index, index)])
 
 
 class Stage1Batches(NamedTuple):

@@ -77,8 +77,7 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
                 (J @ filtered.cov @ J.T).reshape(9),
                 contact_force_xyz(forces),
                 force_covariance(
-                    forces, J_force, filtered.cov, model_variance,
-                    support_force_covariance(model, filtered.mean) if model.law.support_uncertain else None,
+                    forces, J_force, filtered.cov, model_variance, support_force_covariance(model, filtered.mean)
                 ).reshape(9),
                 jnp.stack([forces.F_n, forces.F_t, forces.F_z]),
                 jnp.stack([forces.radial_contact, forces.axial_contact]).astype(eta.dtype),
