@@ -146,11 +146,20 @@ def family_load_bags(tmp_path_factory):
     return _family(tmp_path_factory.mktemp("family_load"), "soft_bearing", axial_load=True)
 
 
-def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_10_percent(family_load_bags, tmp_path):
+@pytest.mark.parametrize("friction", ["paper", "spinning_ring"])
+def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_10_percent(
+    family_load_bags, tmp_path, friction
+):
+    """With the ring's friction stage 1 takes up part of the hidden load in the friction (mu 0.88 for
+    about 0.2): the load's fit from there stays in that basin (1159 N) while the magnetic stiffness's
+    leaves it; fitted again from the best candidate's constants the load wins (2026-11-26)."""
     bags, rig, truths = family_load_bags
     loads = [t.axial_load for t in truths]
     assert all(1500.0 < f < 2500.0 for f in loads)
-    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
+    calibrated = _calibrated(
+        bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15",
+        "-p", f"contact.friction:={friction}",
+    )
     out = tmp_path / "diagnosis"
     assert (
         main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
