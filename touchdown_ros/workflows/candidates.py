@@ -172,15 +172,13 @@ def fit_candidates(
     by bag, their constants kept."""
     candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
     problem = _Problem(config, model, candidates, data, settings.k)
-    chosen_of = {BASELINE: None, **{effect.name: chosen for chosen, effect in enumerate(candidates)}}
-    effect_of = {BASELINE: None, **{effect.name: effect for effect in candidates}}
-    thetas: dict[str, Stage1] = {}
+    slots = {BASELINE: (None, None), **{effect.name: (chosen, effect) for chosen, effect in enumerate(candidates)}}
     phases: np.ndarray | None = None
 
-    def fitted(name: str, start: Stage1, label: str = "") -> CandidateFit:
-        """Fit `name` (the baseline or a candidate) from `start`; measure it."""
+    def fitted(name: str, start: Stage1, label: str = "") -> tuple[CandidateFit, Stage1]:
+        """Fit `name` (the baseline or a candidate) from `start`; measure it; the fit and its coordinates."""
         nonlocal phases
-        effect, chosen = effect_of[name], chosen_of[name]
+        chosen, effect = slots[name]
         fitted_effects = [*model.effects.names, *([effect.name] if effect else [])]
         batch = problem.gated(chosen)
         if effect is not None:
@@ -209,7 +207,6 @@ def fit_candidates(
         if effect is not None:
             values = problem.physical(theta, effect.name)
             sd = _effect_sd(problem, coordinates, x, batch, effect.name)
-        thetas[name] = theta
         return CandidateFit(
             name=name,
             values=values,
@@ -220,10 +217,12 @@ def fit_candidates(
             held_out=held_out_errors(measures, batch, phases),
             parameters=len(coordinates.names),
             convergence=convergence,
-        )
+        ), theta
 
-    fits = [fitted(BASELINE, problem.start)]
-    fits += [fitted(effect.name, problem.start) for effect in candidates]
+    fits, thetas = [], {}
+    for name in slots:  # the baseline first: its fit sets the candidates' scales (`_Problem.rescale`)
+        fit, thetas[name] = fitted(name, problem.start)
+        fits.append(fit)
     selection = Selection([p.name for p in data.paths], fits, problem.every, problem.block)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
@@ -233,8 +232,7 @@ def fit_candidates(
     if order and settings.from_best:
         best = order[0].name
         for first in [selection.baseline, *order[1 : 1 + settings.from_best]]:
-            first_theta = thetas[first.name]
-            second = fitted(first.name, thetas[best], f", from {best}'s constants")
+            second, theta = fitted(first.name, thetas[best], f", from {best}'s constants")
             if second.convergence.final_loss < first.convergence.final_loss:
                 print(
                     f"[fit {first.name}] kept the start from {best}'s constants: loss "
@@ -242,10 +240,9 @@ def fit_candidates(
                     file=stream, flush=True,
                 )
                 selection.fits[[f.name for f in selection.fits].index(first.name)] = second
-            else:
-                thetas[first.name] = first_theta
+                thetas[first.name] = theta
     for fit in ranked(selection)[: settings.per_bag]:
-        chosen, theta = chosen_of[fit.name], thetas[fit.name]
+        chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
             coordinates = Coordinates(
                 theta, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[fit.name])
