@@ -125,6 +125,12 @@ def test_the_best_candidate_must_beat_the_baseline_with_its_parameters_counted_a
     assert not sel.verdict([overfit])["explained"]
     small = sel.judge("small", (*_errors(2.9, 8.8e-6), 9), base)
     assert sel.verdict([small])["explained"]
+    # better by the criterion, but by less than very strong evidence: two parameters fitted to the
+    # rest of the model's error (an unmodelled thrust on lossy_contact, the ring's friction: -1.3)
+    weak = sel.judge("weak", (*_errors(2.988, 8.8e-6), 9), base)
+    assert -sel.MIN_CRITERION_FALL < weak.criterion < 0
+    chosen = sel.verdict([weak])
+    assert not chosen["explained"] and f"does not fall by {sel.MIN_CRITERION_FALL:g}" in chosen["text"]
     # better overall but worse in one contact phase: a compromise, not the missing effect
     fitted, held = _errors(2.9, 5e-6)
     held["free flight"] = sel.Errors(10, 2.9, np.full(3, 12e-6))
@@ -163,7 +169,7 @@ def test_a_refusal_names_the_test_the_candidate_failed():
     assert "k-step" not in text and "criterion does not fall" not in text
     both = sel.Judged("load", criterion=3.0, nll_fall=0.01, k_step_fall=-0.02, phase_k_step_fall={})
     text = sel.verdict([both])["text"]
-    assert "its criterion does not fall (+3.0)" in text and "k-step error by +2 %" in text and "NLL" not in text
+    assert "its criterion does not fall by 10 (+3.0)" in text and "k-step error by +2 %" in text and "NLL" not in text
 
 
 def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_differ():
