@@ -185,3 +185,18 @@ def test_collinear_candidates_are_told_apart_by_the_contact_phase_where_they_dif
     chosen = sel.verdict([stiff, load])
     assert chosen["best"] == "load" and chosen["collinear"]["phase"] == "free flight"
     assert chosen["collinear"]["candidates"] == ["load", "stiffness"] and "free flight" in chosen["text"]
+
+
+def test_the_k_step_error_net_of_the_sensor_noise_is_the_models_own():
+    """A k-step prediction compared with noisy samples carries the sensor noise's variance: net of R it
+    is the prediction's error against the true displacement (here 3 / 0 / 1 um with 2 um of noise)."""
+    rng = np.random.default_rng(7)
+    true_error = np.array([3.0e-6, 0.0, 1.0e-6])
+    truth = rng.normal(0.0, 1e-4, (200_000, 3))
+    predicted = truth + true_error * rng.standard_normal((200_000, 3))
+    measured = truth + 2.0e-6 * rng.standard_normal((200_000, 3))
+    rmse = np.sqrt(np.mean((predicted - measured) ** 2, axis=0))
+    assert np.all(rmse > 1.9e-6)
+    net = sel.net_of_noise(rmse, np.full(3, 4.0e-12))
+    np.testing.assert_allclose(net[[0, 2]], true_error[[0, 2]], rtol=0.05)
+    assert 0.0 <= net[1] < 0.3e-6

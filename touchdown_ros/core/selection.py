@@ -121,6 +121,13 @@ def information_criterion(mean_nll: float, samples: int, parameters: int) -> flo
     return float(samples * mean_nll + parameters * np.log(samples))
 
 
+def net_of_noise(rmse: np.ndarray, noise_variance: np.ndarray) -> np.ndarray:
+    """m, the model's own part of a k-step prediction RMSE per axis: sqrt(max(rmse^2 - R, 0)) with R (m^2)
+    the sensor noise's variance. The prediction uses the samples up to k before the one it is compared
+    with, so that sample's white noise adds its variance to the mean square and no model removes it."""
+    return np.sqrt(np.maximum(np.asarray(rmse) ** 2 - np.asarray(noise_variance), 0.0))
+
+
 def fall(before: float, after: float) -> float:
     """Relative fall of an error, 1 - after / before (0.5: halved; negative: it rose)."""
     return float(1.0 - after / before) if before else float("nan")
