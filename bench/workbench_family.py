@@ -47,7 +47,6 @@ import yaml
 
 from touchdown_ros.cli import main as touchdown
 from touchdown_ros.cli import parameter_overrides
-from touchdown_ros.core.selection import net_of_noise
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.offline import force_rmse_against_truth
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
@@ -228,7 +227,8 @@ def run_case(case: Case, out: Path, fit: int | None = None, params: list[str] = 
     after = np.asarray(judged["held_out_k_step_rmse_m"]) if judged else before
     k_step_ratio = float(np.linalg.norm(after[axes]) / np.linalg.norm(before[axes]))
     noise = np.asarray(verdict["held_out"]["measurement_noise_rms_m"])
-    before_net, after_net = net_of_noise(before, noise**2), net_of_noise(after, noise**2)
+    before_net = np.asarray(verdict["held_out"]["baseline_k_step_rmse_net_m"])
+    after_net = np.asarray(judged["held_out_k_step_rmse_net_m"]) if judged else before_net
     k_step_net_ratio = float(np.linalg.norm(after_net[axes]) / np.linalg.norm(before_net[axes]))
     force_before = force_rmse(rig, calibrated, bags, params)
     trained, alone, force_after = {}, {}, force_before

@@ -198,8 +198,9 @@ def verdict(
     and in no contact phase higher by more than `max_rise`); else unexplained. When the runner-up is
     within `margin` of it, the two are named collinear and the contact phase where their held-out
     k-step falls differ most decides between them (e.g. free flight, where a constant load acts and a
-    contact effect does not). A candidate of lower criterion that fails the held-out tests does not hide one that
-    passes them: it fits the bags by compensating something else, and is named beside the verdict."""
+    contact effect does not). A candidate of lower criterion that fails the held-out tests does not hide
+    one that passes them: it fits the bags by compensating something else, and is named beside the
+    verdict."""
     order = sorted(judged, key=lambda j: j.criterion)
     if not order:
         return {"explained": False, "best": None, "margin_to_second": float("nan"), "collinear": None,

@@ -265,11 +265,11 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
         f"(one {held['block_samples']}-sample block in {held['every']}), judged on the held-out ones against the same "
         f"fit without any (criterion: BIC difference, negative is better). The k-step error net of the sensor "
         f"noise is the model's own part, sqrt(RMSE^2 - R) per axis (R's sd "
-        + " / ".join(f"{1e6 * r:.2f}" for r in held["measurement_noise_rms_m"])
+        + " / ".join(map(_um, held["measurement_noise_rms_m"]))
         + " um on x / y / z; the baseline's held-out k-step RMSE "
-        + " / ".join(f"{1e6 * r:.2f}" for r in held["baseline_k_step_rmse_m"])
+        + " / ".join(map(_um, held["baseline_k_step_rmse_m"]))
         + " um, net "
-        + " / ".join(f"{1e6 * r:.2f}" for r in held["baseline_k_step_rmse_net_m"])
+        + " / ".join(map(_um, held["baseline_k_step_rmse_net_m"]))
         + " um).",
         "",
         "| candidate | criterion | held-out NLL fall | k-step error fall | net of sensor noise | fitted value +- sd "
