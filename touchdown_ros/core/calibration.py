@@ -478,8 +478,12 @@ def strongest_correlations(names: list[str], correlation: np.ndarray, count: int
 DEFORMATION_PERCENTILE = 95.0
 
 
+#: Kernel centres per input axis that `place_centres` lays on the data (count^2 per centre set).
+PLACED_CENTRES = 5
+
+
 def place_centres(
-    deformation: np.ndarray, velocity: np.ndarray, count: int = 5
+    deformation: np.ndarray, velocity: np.ndarray, count: int = PLACED_CENTRES
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A count x count grid of kernel centres over in-contact samples (deformation m > 0, velocity
     m/s): deformation from 0 to its 95th percentile, velocity over its 1st-99th percentiles.
@@ -506,6 +510,14 @@ def place_centres(
     v_centres = v_low / scale[1] + np.arange(count, dtype=float)
     grid_d, grid_v = np.meshgrid(d_centres, v_centres, indexing="ij")
     return np.stack([grid_d.ravel(), grid_v.ravel()], axis=1), scale
+
+
+def kernel_as_placed(kernel: Kernel, count: int = PLACED_CENTRES) -> Kernel:
+    """`kernel` with both centre sets shaped as `kernel_from_data` places them (count^2 centres on a unit
+    grid, unit scales): a stand-in of the right shapes for compiling stage 2 before the data place them."""
+    grid_d, grid_v = np.meshgrid(np.arange(count, dtype=float), np.arange(count, dtype=float), indexing="ij")
+    T, scale = jnp.asarray(np.stack([grid_d.ravel(), grid_v.ravel()], axis=1)), jnp.ones(2)
+    return kernel._replace(T_R=T, T_Z=T, scale_R=scale, scale_Z=scale)
 
 
 def strongly_typed(tree):
@@ -543,7 +555,8 @@ def contact_samples(
 
 
 def kernel_from_data(
-    kernel: Kernel, radial: tuple[np.ndarray, np.ndarray], axial: tuple[np.ndarray, np.ndarray], count: int = 5
+    kernel: Kernel, radial: tuple[np.ndarray, np.ndarray], axial: tuple[np.ndarray, np.ndarray],
+    count: int = PLACED_CENTRES,
 ) -> tuple[Kernel, list[str]]:
     """`kernel` with centre sets placed on the in-contact (deformation, velocity) samples of each
     contact (`place_centres`); a set without enough contact keeps the given grid (and says so)."""

@@ -24,6 +24,7 @@ from touchdown_ros.core.calibration import (
     posterior_covariance,
     sensor_noise,
     stage1_flags,
+    stage1_information,
     stage1_information_over,
     stage1_model_and_noise,
     stage1_start,
@@ -36,6 +37,7 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
 from touchdown_ros.core.types import EXACT_SUPPORT, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
+from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.optimise import (
     DIVERGED_LOSS,
     Convergence,
@@ -53,6 +55,8 @@ from touchdown_ros.workflows.training_data import (
     training_chunks,
 )
 
+#: `Ahead` name of the standard errors' program (`stage1_information`).
+INFORMATION_PROGRAM = "stage 1's standard errors"
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
 #: Criterion (AIC or BIC) behind the best screened candidate within which a candidate is refined too before one is
@@ -111,10 +115,11 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
     return np.asarray(jax.jit(lambda b: jnp.sum(sample_errors(model, noise, h, b, kind), axis=1))(batch))
 
 
-def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
+def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | None = None) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
-    guess; keep the candidate with the lowest information criterion (`training.search`)."""
+    guess; keep the candidate with the lowest information criterion (`training.search`). With `ahead`,
+    the standard errors' program is compiled in the background while the laws are fitted."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print(
@@ -143,6 +148,16 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
+
+    # The standard errors' tangents are padded to the most coordinates a candidate frees (with a
+    # yielding support), so one program, compiled while the laws are fitted, serves the chosen one.
+    most_free = len(Coordinates(start, stage1_flags(effects, fit_q, fit_support=True)).names)
+    if ahead is not None:
+        ahead.compile(
+            INFORMATION_PROGRAM, stage1_information, start_coordinates.theta(start_coordinates.initial()),
+            start_coordinates.directions(most_free), law_model(settings.contact_laws[0]), noise, scales, h, chunks[0],
+            kind, mesh,
+        )
 
     # With the ring's speed as a state the loss far from the rig's constants is rough (the ring sticks
     # and slips as they move): the laws are screened with the ring turning with the rotor (its speed
@@ -352,9 +367,12 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
+    if ahead is not None:
+        ahead.wait(INFORMATION_PROGRAM)
+    free = len(coordinates.names)
     information = stage1_information_over(
-        chunks, theta, coordinates.directions(), law_model(law), noise, scales, h, kind, mesh
-    )
+        chunks, theta, coordinates.directions(most_free), law_model(law), noise, scales, h, kind, mesh
+    )[:free, :free]
     covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width))
     sd, correlation = standard_errors_and_correlation(covariance)
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}

@@ -13,13 +13,16 @@ from typing import Any, Callable, Mapping, NamedTuple, Sequence
 import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh
 from scipy.optimize import minimize_scalar
 
 from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
 from touchdown_ros.core.calibration import (
     apply_scales,
+    strongly_typed,
     contact_samples,
     effect_scales,
+    kernel_as_placed,
     kernel_from_data,
     scaled_bounds,
 )
@@ -30,6 +33,7 @@ from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import OUTPUT_SIZE, Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
+from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, DivergedError, minimise, require_convergence
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import (  # noqa: F401  (TrainingData, load_training_data: the trainer's API)
@@ -60,24 +64,88 @@ class Trainable(NamedTuple):
     effects: Effects
 
 
-def make_objective(config: Config) -> Callable:
-    """Jitted ((loss, held-out loss), gradient of the loss) of eq. 18 in (whitened coefficients beta,
-    scaled effect parameters), the records spread over `record_mesh()`; the batch, lambda and the
-    kernel's `Whitening` are arguments (the batch `place`d on that mesh), so batches of one shape
-    (e.g. cross-validation folds) and every lambda share one compilation."""
-    model, mesh, kind = config.model(), record_mesh(), config.training.loss
+@functools.partial(jax.jit, static_argnames=("h", "kind", "mesh"))
+def stage2_value_and_grad(
+    trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array, w: Whitening, model: Model,
+    noise: FilterNoise, h: float, kind: str, mesh: Mesh | None,
+) -> tuple[tuple[jax.Array, jax.Array], Trainable]:
+    """((loss, held-out loss), gradient of the loss) of eq. 18 in (whitened coefficients beta, scaled
+    effect parameters). The model and the noise are arguments, not constants of the program, so one
+    compilation serves every rig of one shape and can start before stage 1 has calibrated them
+    (`compile_stage2_ahead`)."""
 
-    def objective(
-        trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array, w: Whitening
-    ) -> tuple[jax.Array, jax.Array]:
+    def objective(trainable: Trainable) -> tuple[jax.Array, jax.Array]:
         effects = apply_scales(trainable.effects, scales)
-        noise = config.training_noise()
         return loss_and_held_out(
-            coloured(w, trainable.coeffs), model, noise, config.sample_period, batch, regularisation, effects, mesh,
-            kind,
+            coloured(w, trainable.coeffs), model, noise, h, batch, regularisation, effects, mesh, kind
         )
 
-    return jax.jit(jax.value_and_grad(objective, has_aux=True))
+    return jax.value_and_grad(objective, has_aux=True)(trainable)
+
+
+def make_objective(config: Config) -> Callable:
+    """`stage2_value_and_grad` of this rig's model and training noise, the records spread over
+    `record_mesh()`: a function of (trainable, scales, batch, lambda, the kernel's `Whitening`), the
+    batch `place`d on that mesh, so batches of one shape (e.g. cross-validation folds) and every lambda
+    share one compilation."""
+    return functools.partial(
+        stage2_value_and_grad,
+        model=strongly_typed(config.model()),
+        noise=strongly_typed(config.training_noise()),
+        h=config.sample_period,
+        kind=config.training.loss,
+        mesh=record_mesh(),
+    )
+
+
+class Stage2Problem(NamedTuple):
+    """Stage 2's start and records, as `stage2_value_and_grad` takes them."""
+
+    theta0: np.ndarray  # the start: whitened coefficients and scaled effect parameters, flat
+    unravel: Callable[[np.ndarray], Trainable]  # flat -> (beta, scaled effect parameters)
+    scales: Effects  # each effect parameter's scale (`effect_scales`)
+    batch: Batch  # the records with their held-out blocks, `place`d on the record mesh
+    w: Whitening
+
+    def arguments(self, theta: np.ndarray, regularisation: float) -> tuple:
+        """The positional arguments of a `make_objective` result at theta and lambda (every leaf strongly
+        typed, so that a program compiled ahead of time is the one called)."""
+        return (strongly_typed(self.unravel(theta)), strongly_typed(self.scales), self.batch, np.float64(regularisation),
+                self.w)
+
+
+def stage2_problem(config: Config, data: TrainingData, initial: Trainable, length: int | None = None) -> Stage2Problem:
+    """Stage 2 from `initial` on the records of `data` (padded to `length` samples), one block in every
+    `training.held_out_every` held out."""
+    scales = effect_scales(initial.effects)
+    batch = hold_out(training_batch(config, data, initial.effects, length), config.held_out_block_samples(),
+                     config.training.held_out_every)
+    w = whitening(config.kernel)
+    theta0, unravel = ravel_pytree(
+        Trainable(whitened(w, initial.coeffs), apply_scales(initial.effects, scales, inverse=True))
+    )
+    # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
+    # so their gradient is zero and they never move)
+    return Stage2Problem(np.asarray(theta0, dtype=float), unravel, scales, batch, w)
+
+
+#: `Ahead` names of stage 2's program (`stage2_value_and_grad`) and the smoothing noise's (`leave_one_out_squares`).
+STAGE2_PROGRAM = "stage 2"
+SMOOTHING_PROGRAM = "the smoothing noise's cross-validation"
+
+
+def compile_stage2_ahead(ahead: Ahead, config: Config, data: TrainingData) -> None:
+    """Queue the compilation of stage 2's program (and the smoothing noise's) for the records of `data`,
+    with the kernel shaped as the data will place it and the rig's effects (the calibrated values are
+    arguments of the same shapes)."""
+    kernel = kernel_as_placed(config.kernel) if config.training.placement == "data" else config.kernel
+    shaped = replace(config, kernel=kernel)
+    problem = stage2_problem(shaped, data, Trainable(Coefficients.zeros(kernel), config.effects))
+    objective = make_objective(shaped)
+    ahead.compile(STAGE2_PROGRAM, objective.func, *problem.arguments(problem.theta0, 1.0), **objective.keywords)
+    if config.training.smoothing_noise == "cross_validation":
+        ahead.compile(SMOOTHING_PROGRAM, leave_one_out_squares, objective.keywords["model"],
+                      strongly_typed(config.noise), config.sample_period, training_batch(shaped, data, config.effects))
 
 
 def fit(
@@ -104,25 +172,18 @@ def fit(
     """
     if initial is None or isinstance(initial, Coefficients):
         initial = Trainable(initial if initial is not None else Coefficients.zeros(config.kernel), config.effects)
-    scales = effect_scales(initial.effects)
     settings = config.training
-    batch = hold_out(training_batch(config, data, initial.effects, length), config.held_out_block_samples(),
-                     settings.held_out_every)
+    problem = stage2_problem(config, data, initial, length)
+    theta0, unravel, scales, batch, w = problem
     note_ungated(initial.effects, (batch,), stream)
     objective = objective or make_objective(config)
-    w = whitening(config.kernel)
-    theta0, unravel = ravel_pytree(
-        Trainable(whitened(w, initial.coeffs), apply_scales(initial.effects, scales, inverse=True))
-    )
-    # (the effects' gates ride along in theta, but the loss replaces them by each record's gates,
-    # so their gradient is zero and they never move)
 
     def physical(theta: np.ndarray) -> Trainable:
         scaled = unravel(theta)
         return Trainable(coloured(w, scaled.coeffs), apply_scales(scaled.effects, scales))
 
     def value_and_grad(theta: np.ndarray):
-        (value, held_out), grad = objective(unravel(theta), scales, batch, np.float64(regularisation), w)
+        (value, held_out), grad = objective(*problem.arguments(theta, regularisation))
         gradient = np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
         return (float(value), gradient, float(held_out)) if settings.held_out_every > 1 else (float(value), gradient)
 
@@ -309,10 +370,11 @@ def choose_smoothing_scale(
     started = time.perf_counter()
     valid = np.asarray(batch.valid)
     squares: dict[float, np.ndarray] = {}
+    typed_model = strongly_typed(model)  # the program `compile_stage2_ahead` queued
 
     def error(log_scale: float) -> float:
         scaled = noise._replace(process=np.asarray(noise.process) * np.exp(log_scale))
-        squares[log_scale] = np.asarray(leave_one_out_squares(model, scaled, h, batch))
+        squares[log_scale] = np.asarray(leave_one_out_squares(typed_model, strongly_typed(scaled), h, batch))
         value = float(np.sqrt(squares[log_scale].sum() / (valid.sum() * OUTPUT_SIZE)))
         print(
             f"[smoothing noise] Q x{np.exp(log_scale):.3g}: leave-one-out error {value * 1e6:.4f} um  "
@@ -361,7 +423,25 @@ def train(
     lambda path (`fit_regularisation_path`) starts from its coefficients. With `resume`, stage 1 is
     the checkpoint's and the path goes on where it stopped: the lambdas it finished are not fitted
     again (the lowest of them was kept beside the checkpoint, `lambda_fit_path`), the interrupted
-    one continues from the checkpoint's coefficients, the later ones start from stage 1's model."""
+    one continues from the checkpoint's coefficients, the later ones start from stage 1's model.
+    Stage 2's and the standard errors' programs are compiled in a background thread while stage 1 runs
+    (`Ahead`)."""
+    with Ahead(stream) as ahead:
+        return _train(config, bags, out, regularisation, init, resume, max_steps, duration, stream, ahead)
+
+
+def _train(
+    config: Config,
+    bags: Sequence[str | Path],
+    out: Path,
+    regularisation: float | None,
+    init: Path | None,
+    resume: bool,
+    max_steps: int | None,
+    duration: float | None,
+    stream,
+    ahead: Ahead,
+) -> TrainOutcome:
     start = time.perf_counter()
     lambdas = config.regularisation if regularisation is None else (regularisation,)
     steps = config.training.pkbkr_steps if max_steps is None else max_steps
@@ -378,7 +458,8 @@ def train(
         if resume and "stage2_start_effects" in loaded.training.extra:
             initial, progress = _resumed_path(config, calibrated, out, loaded.training.extra, initial)
     else:
-        calibration = calibrate(config, data, stream)
+        compile_stage2_ahead(ahead, config, data)
+        calibration = calibrate(config, data, stream, ahead)
         calibrated = calibration.config
         stage1 = calibration.summary()
         if config.training.placement == "data":
@@ -420,6 +501,7 @@ def train(
         )
         finished[0] = so_far
 
+    ahead.wait(STAGE2_PROGRAM)
     path = fit_regularisation_path(
         calibrated, data, lambdas, initial, steps, on_step, stream,
         knob=f"--steps N (then --resume continues from {checkpoint_path(out)})",
@@ -431,6 +513,7 @@ def train(
     chunks = stage1_batches(calibrated, data, result.effects).chunks  # stage 1's shape: its compiled filter serves
     _, nis = filtered_records(final, calibrated.noise, config.sample_period, chunks)
     if config.training.smoothing_noise == "cross_validation":
+        ahead.wait(SMOOTHING_PROGRAM)
         smoothing = choose_smoothing_scale(final, calibrated.noise, config.sample_period, batch, stream)
         calibrated = replace(calibrated, smoothing_noise_scale=smoothing.scale)
     else:

@@ -1,0 +1,65 @@
+"""Programs compiled in a background thread while the work before their first call goes on.
+
+XLA compiles a program on one core; `touchdown train` compiles stage 1's objective, then, a minute
+later, the standard errors' and stage 2's programs, each while the other core waits. Their arguments'
+shapes are known from the bags and the rig YAML before stage 1 starts, and the programs take the
+calibrated values as arguments, so they can be compiled at the start: `jit(f).lower(...).compile()`
+fills the same cache the later call looks in (JAX's, in memory, and the persistent one on disk).
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Callable
+
+from touchdown_ros.workflows.progress import STDERR
+
+
+#: Name (prefix) of the background thread.
+THREAD_NAME = "touchdown-compile-ahead"
+
+
+class Ahead:
+    """A queue of compilations run one at a time in a background thread, in the order given."""
+
+    def __init__(self, stream=STDERR):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_NAME)
+        self._jobs: dict[str, Future] = {}
+        self._stream = stream
+
+    def compile(self, name: str, jitted: Any, *args: Any, **kwargs: Any) -> None:
+        """Queue `jitted.lower(*args, **kwargs).compile()`: the arguments as the later call passes them
+        (positional or keyword alike; leaves strongly typed), their values unused."""
+        self.submit(name, lambda: jitted.lower(*args, **kwargs).compile())
+
+    def submit(self, name: str, build: Callable[[], Any]) -> None:
+        """Queue `build` (which compiles something) under `name`, timed."""
+
+        def timed() -> float:
+            start = time.perf_counter()
+            build()
+            return time.perf_counter() - start
+
+        self._jobs[name] = self._pool.submit(timed)
+
+    def wait(self, name: str) -> None:
+        """Block until `name` is compiled (the later call then finds it instead of compiling it a second
+        time beside the first). A failure only means the call compiles it: a note says so, no error."""
+        job = self._jobs.pop(name, None)
+        if job is None:
+            return
+        try:
+            job.result()
+        except Exception as error:  # noqa: BLE001 (an optimisation failed: the call compiles it itself)
+            print(f"note: compiling {name} ahead failed ({type(error).__name__}: {error}); compiled when needed",
+                  file=self._stream, flush=True)
+
+    def close(self) -> None:
+        """Drop the compilations not yet started; one under way finishes in the background."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def __enter__(self) -> "Ahead":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
