@@ -8,9 +8,8 @@ fills the same cache the later call looks in (JAX's, in memory, and the persiste
 """
 from __future__ import annotations
 
-import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Callable
+from typing import Any
 
 from touchdown_ros.workflows.progress import STDERR
 
@@ -28,19 +27,9 @@ class Ahead:
         self._stream = stream
 
     def compile(self, name: str, jitted: Any, *args: Any, **kwargs: Any) -> None:
-        """Queue `jitted.lower(*args, **kwargs).compile()`: the arguments as the later call passes them
-        (positional or keyword alike; leaves strongly typed), their values unused."""
-        self.submit(name, lambda: jitted.lower(*args, **kwargs).compile())
-
-    def submit(self, name: str, build: Callable[[], Any]) -> None:
-        """Queue `build` (which compiles something) under `name`, timed."""
-
-        def timed() -> float:
-            start = time.perf_counter()
-            build()
-            return time.perf_counter() - start
-
-        self._jobs[name] = self._pool.submit(timed)
+        """Queue `jitted.lower(*args, **kwargs).compile()` under `name`: the arguments as the later call
+        passes them (positional or keyword alike; leaves strongly typed), their values unused."""
+        self._jobs[name] = self._pool.submit(lambda: jitted.lower(*args, **kwargs).compile())
 
     def wait(self, name: str) -> None:
         """Block until `name` is compiled (the later call then finds it instead of compiling it a second

@@ -19,12 +19,12 @@ from scipy.optimize import minimize_scalar
 from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
 from touchdown_ros.core.calibration import (
     apply_scales,
-    strongly_typed,
     contact_samples,
     effect_scales,
     kernel_as_placed,
     kernel_from_data,
     scaled_bounds,
+    strongly_typed,
 )
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.pkbkr import Whitening, coloured, whitened, whitening
@@ -110,8 +110,8 @@ class Stage2Problem(NamedTuple):
     def arguments(self, theta: np.ndarray, regularisation: float) -> tuple:
         """The positional arguments of a `make_objective` result at theta and lambda (every leaf strongly
         typed, so that a program compiled ahead of time is the one called)."""
-        return (strongly_typed(self.unravel(theta)), strongly_typed(self.scales), self.batch, np.float64(regularisation),
-                self.w)
+        lam = np.float64(regularisation)
+        return strongly_typed(self.unravel(theta)), strongly_typed(self.scales), self.batch, lam, self.w
 
 
 def stage2_problem(config: Config, data: TrainingData, initial: Trainable, length: int | None = None) -> Stage2Problem:
@@ -424,8 +424,8 @@ def train(
     the checkpoint's and the path goes on where it stopped: the lambdas it finished are not fitted
     again (the lowest of them was kept beside the checkpoint, `lambda_fit_path`), the interrupted
     one continues from the checkpoint's coefficients, the later ones start from stage 1's model.
-    Stage 2's and the standard errors' programs are compiled in a background thread while stage 1 runs
-    (`Ahead`)."""
+    Stage 2's program, the standard errors' and the smoothing noise's are compiled in a background thread
+    while stage 1 runs (`Ahead`)."""
     with Ahead(stream) as ahead:
         return _train(config, bags, out, regularisation, init, resume, max_steps, duration, stream, ahead)
 
