@@ -267,3 +267,22 @@ def test_progress_reaches_stderr_as_it_is_when_written(monkeypatch):
     theta, convergence = minimise(lambda x: (float(x @ x), 2.0 * x), np.array([1.0, -2.0]), 20, 1e-9, "quadratic")
     assert convergence.converged and np.allclose(theta, 0.0, atol=1e-6)
     assert "[quadratic step 1/<=20]" in redirected.getvalue() and "[quadratic] converged" in redirected.getvalue()
+
+
+def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it():
+    """`Ahead` is an optimisation: a program it cannot compile is reported and compiled when called."""
+    from touchdown_ros.workflows.ahead import Ahead
+
+    def halve(x):
+        if x.shape[0] != 4:
+            raise ValueError(f"no program for {x.shape[0]} samples")
+        return x / 2
+
+    stream = io.StringIO()
+    program = jax.jit(halve)
+    with Ahead(stream) as ahead:
+        ahead.compile("the halving program", program, np.zeros(3))
+        ahead.wait("the halving program")
+        ahead.wait("a program never queued")  # nothing to wait for
+    assert "compiling the halving program ahead failed (ValueError: no program for 3 samples)" in stream.getvalue()
+    np.testing.assert_array_equal(program(np.full(4, 2.0)), np.ones(4))
