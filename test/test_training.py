@@ -282,7 +282,11 @@ def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it()
     program = jax.jit(halve)
     with Ahead(stream) as ahead:
         ahead.compile("the halving program", program, np.zeros(3))
+        ahead.compile("a program waited for before the start", program, np.zeros(2))
+        ahead.wait("a program waited for before the start")  # dropped: the call compiles it
+        ahead.start()
         ahead.wait("the halving program")
         ahead.wait("a program never queued")  # nothing to wait for
     assert "compiling the halving program ahead failed (ValueError: no program for 3 samples)" in stream.getvalue()
+    assert "2 samples" not in stream.getvalue()
     np.testing.assert_array_equal(program(np.full(4, 2.0)), np.ones(4))

@@ -3,13 +3,13 @@
 XLA compiles a program on one core; `touchdown train` compiles stage 1's objective, then, a minute
 later, the standard errors' and stage 2's programs, each while the other core waits. Their arguments'
 shapes are known from the bags and the rig YAML before stage 1 starts, and the programs take the
-calibrated values as arguments, so they can be compiled at the start: `jit(f).lower(...).compile()`
+calibrated values as arguments, so they can be compiled while stage 1's is: `jit(f).lower(...).compile()`
 fills the same cache the later call looks in (JAX's, in memory, and the persistent one on disk).
 """
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any
+from typing import Any, Callable
 
 from touchdown_ros.workflows.progress import STDERR
 
@@ -19,21 +19,38 @@ THREAD_NAME = "touchdown-compile-ahead"
 
 
 class Ahead:
-    """A queue of compilations run one at a time in a background thread, in the order given."""
+    """A queue of compilations run one at a time in a background thread, in the order given, from `start`.
+
+    Tracing a program is Python, which holds the interpreter's lock: begun while the caller's own
+    Python work goes on (reading bags, the data's scales), it slows that work by as much. So the
+    compilations wait for `start`, called where the caller itself compiles (and XLA releases the lock)."""
 
     def __init__(self, stream=STDERR):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_NAME)
+        self._queued: dict[str, Callable[[], Any]] = {}
         self._jobs: dict[str, Future] = {}
         self._stream = stream
+        self._started = False
 
     def compile(self, name: str, jitted: Any, *args: Any, **kwargs: Any) -> None:
         """Queue `jitted.lower(*args, **kwargs).compile()` under `name`: the arguments as the later call
         passes them (positional or keyword alike; leaves strongly typed), their values unused."""
-        self._jobs[name] = self._pool.submit(lambda: jitted.lower(*args, **kwargs).compile())
+        self._queued[name] = lambda: jitted.lower(*args, **kwargs).compile()
+        if self._started:
+            self.start()
+
+    def start(self) -> None:
+        """Begin the queued compilations (those queued later begin at once)."""
+        self._started = True
+        for name, build in self._queued.items():
+            self._jobs[name] = self._pool.submit(build)
+        self._queued.clear()
 
     def wait(self, name: str) -> None:
         """Block until `name` is compiled (the later call then finds it instead of compiling it a second
-        time beside the first). A failure only means the call compiles it: a note says so, no error."""
+        time beside the first); one never started is dropped (the call compiles it). A failure only
+        means the call compiles it: a note says so, no error."""
+        self._queued.pop(name, None)
         job = self._jobs.pop(name, None)
         if job is None:
             return

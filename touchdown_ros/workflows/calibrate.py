@@ -235,6 +235,8 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
+    if ahead is not None:
+        ahead.start()  # the first law's fit compiles stage 1 now, beside them
     for law in settings.contact_laws:
         guess, objective, x0 = problem(law, (screen_batch,), screened=True)
         x, convergence = minimise(
