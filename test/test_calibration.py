@@ -57,6 +57,7 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     states are the batch's, their padding dropped."""
     from touchdown_ros.core.calibration import (
         RIGID_LOG_SUPPORT, Stage1, filtered_states, log_nominal, stage1_value_and_grad, stage1_value_and_grad_over,
+        stage1_value_over,
     )
     from touchdown_ros.workflows.calibrate import filtered_records, stage1_batches
     from touchdown_ros.workflows.training_data import TrainingData, record_mesh, training_batch
@@ -76,6 +77,8 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     value, grad = stage1_value_and_grad_over(chunks, theta, guess, model, noise, scales, **static)
     expected, expected_grad = stage1_value_and_grad(theta, guess, model, noise, scales, whole, **static)
     assert float(value) == pytest.approx(float(expected), rel=1e-10)
+    # the loss alone (start grids, restarts) is the same loss
+    assert stage1_value_over(chunks, theta, guess, model, noise, scales, **static) == pytest.approx(value, rel=1e-12)
     for got, want in ((grad.log_f0, expected_grad.log_f0), (grad.log_q, expected_grad.log_q)):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-12)
     states, nis = filtered_records(config.model(), config.noise, config.sample_period, chunks)
@@ -224,19 +227,19 @@ def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
     names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
     rig_c_R = 3e13
 
-    def objective(x):
+    def loss_of(x):
         u = np.exp(x[1]) / rig_c_R
-        return float(0.5 * u - np.log1p(u) + 0.1 * (x[4] - 1.0) ** 2), np.zeros_like(x)
+        return float(0.5 * u - np.log1p(u) + 0.1 * (x[4] - 1.0) ** 2)
 
     x = np.array([np.log(1.5e12), np.log(4e11), np.log(0.1), np.log(1.5e12), 1.0, np.log(0.05)])
     log = io.StringIO()
-    restarted = damping_restart(objective, names, x, objective(x)[0], log)
+    restarted = damping_restart(loss_of, names, x, loss_of(x), log)
     assert restarted is not None and "c_R x100" in log.getvalue()
     assert np.exp(restarted[1]) == pytest.approx(4e13)  # x10 and x1000 lower the loss less
     np.testing.assert_array_equal(np.delete(restarted, 1), np.delete(x, 1))
-    assert objective(restarted)[0] < objective(x)[0]
+    assert loss_of(restarted) < loss_of(x)
     # no factor lowers the loss there
-    assert damping_restart(objective, names, restarted, objective(restarted)[0], io.StringIO()) is None
+    assert damping_restart(loss_of, names, restarted, loss_of(restarted), io.StringIO()) is None
 
 
 def test_friction_restart_leaves_a_low_friction_basin():
@@ -247,21 +250,21 @@ def test_friction_restart_leaves_a_low_friction_basin():
 
     names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
 
-    def objective(x):
+    def loss_of(x):
         mu, k_ZR = np.exp(x[2]), np.exp(x[5])
         low = 0.3 * np.exp(-((mu - 0.06) ** 2 + (k_ZR - 0.07) ** 2) / 0.001)
         rig = 0.5 * np.exp(-((mu - 0.22) ** 2 + (k_ZR - 0.16) ** 2) / 0.01)
-        return float(4.0 - low - rig), np.zeros_like(x)
+        return float(4.0 - low - rig)
 
     x = np.array([np.log(1.5e12), np.log(3e13), np.log(0.06), np.log(1.5e12), np.log(9e12), np.log(0.07)])
     log = io.StringIO()
-    restarted = friction_restart(objective, names, x, objective(x)[0], log)
+    restarted = friction_restart(loss_of, names, x, loss_of(x), log)
     assert restarted is not None and "mu 0.2, k_ZR 0.2" in log.getvalue()
     assert (np.exp(restarted[2]), np.exp(restarted[5])) == pytest.approx((0.2, 0.2))
     np.testing.assert_array_equal(np.delete(restarted, [2, 5]), np.delete(x, [2, 5]))
     at_rig = x.copy()
     at_rig[2], at_rig[5] = np.log(0.22), np.log(0.16)
-    assert friction_restart(objective, names, at_rig, objective(at_rig)[0], io.StringIO()) is None
+    assert friction_restart(loss_of, names, at_rig, loss_of(at_rig), io.StringIO()) is None
 
 
 def test_config_reads_the_axial_support():

@@ -224,22 +224,22 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
     assert not (out / "broken_estimate").exists()
 
 
-def test_train_compiles_stage2_the_standard_errors_and_the_smoothing_once_ahead_while_stage1_runs(drop_bags, tmp_path):
-    """Stage 2's program, stage 1's standard errors' and the smoothing noise's are compiled in the
-    background thread from the rig YAML's shapes, before stage 1 has calibrated the values they are later
-    called with (other constants, centres placed on the data): the calls find them and compile nothing
-    again."""
+def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):
+    """Stage 1's loss alone (for the support's start grid and the restarts), stage 2's program, stage 1's
+    standard errors' and the smoothing noise's are compiled in the background thread from the rig YAML's
+    shapes while stage 1 compiles and runs, before it has calibrated the values they are later called with
+    (other constants, centres placed on the data): the calls find them and compile nothing again."""
     import threading
 
     import jax
 
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
-    watched = ("stage2_value_and_grad", "stage1_information", "leave_one_out_squares")
+    watched = ("stage1_value", "stage2_value_and_grad", "stage1_information", "leave_one_out_squares")
     compiled: list[tuple[str, str]] = []
 
     def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and any(w in fun_name for w in watched):
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name in {f"jit({w})" for w in watched}:
             compiled.append((fun_name, threading.current_thread().name))
 
     jax.monitoring.register_event_duration_secs_listener(listener)
@@ -250,7 +250,7 @@ def test_train_compiles_stage2_the_standard_errors_and_the_smoothing_once_ahead_
         jax.monitoring.unregister_event_duration_listener(listener)
     assert code == 0
     assert sorted(name for name, _ in compiled) == [
-        "jit(leave_one_out_squares)", "jit(stage1_information)", "jit(stage2_value_and_grad)"
+        "jit(leave_one_out_squares)", "jit(stage1_information)", "jit(stage1_value)", "jit(stage2_value_and_grad)"
     ]
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 

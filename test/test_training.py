@@ -269,6 +269,36 @@ def test_progress_reaches_stderr_as_it_is_when_written(monkeypatch):
     assert "[quadratic step 1/<=20]" in redirected.getvalue() and "[quadratic] converged" in redirected.getvalue()
 
 
+def test_a_compilation_queued_first_ahead_is_compiled_before_those_queued_earlier():
+    """`Ahead.compile_first` puts a program needed sooner (stage 1's loss alone) before the ones queued
+    before it (stage 2's), so the call that needs it first does not wait behind them."""
+    from touchdown_ros.workflows.ahead import Ahead
+
+    order: list[str] = []
+
+    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name in ("jit(later)", "jit(sooner)"):
+            order.append(fun_name)
+
+    def later(x):
+        return x * 3.0
+
+    def sooner(x):
+        return x + 3.0
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        with Ahead(io.StringIO()) as ahead:
+            ahead.compile("later", jax.jit(later), np.zeros(7))
+            ahead.compile_first("sooner", jax.jit(sooner), np.zeros(7))
+            ahead.start()
+            ahead.wait("later")
+            ahead.wait("sooner")
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert order == ["jit(sooner)", "jit(later)"]
+
+
 def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it():
     """`Ahead` is an optimisation: a program it cannot compile is reported and compiled when called."""
     from touchdown_ros.workflows.ahead import Ahead

@@ -19,7 +19,8 @@ THREAD_NAME = "touchdown-compile-ahead"
 
 
 class Ahead:
-    """A queue of compilations run one at a time in a background thread, in the order given, from `start`.
+    """A queue of compilations run one at a time in a background thread, in the order given (those queued
+    with `compile_first` before the others), from `start`.
 
     Tracing a program is Python, which holds the interpreter's lock: begun while the caller's own
     Python work goes on (reading bags, the data's scales), it slows that work by as much. So the
@@ -36,6 +37,13 @@ class Ahead:
         """Queue `jitted.lower(*args, **kwargs).compile()` under `name`: the arguments as the later call
         passes them (positional or keyword alike; leaves strongly typed), their values unused."""
         self._queued[name] = lambda: jitted.lower(*args, **kwargs).compile()
+        if self._started:
+            self.start()
+
+    def compile_first(self, name: str, jitted: Any, *args: Any, **kwargs: Any) -> None:
+        """`compile`, but before the compilations queued so far (a program needed sooner), if `start` is
+        still to come; after it, in turn like any other."""
+        self._queued = {name: lambda: jitted.lower(*args, **kwargs).compile(), **self._queued}
         if self._started:
             self.start()
 

@@ -28,7 +28,9 @@ from touchdown_ros.core.calibration import (
     stage1_information_over,
     stage1_model_and_noise,
     stage1_start,
+    stage1_value,
     stage1_value_and_grad_over,
+    stage1_value_over,
     standard_errors_and_correlation,
     strongest_correlations,
 )
@@ -55,8 +57,10 @@ from touchdown_ros.workflows.training_data import (
     training_chunks,
 )
 
-#: `Ahead` name of the standard errors' program (`stage1_information`).
+#: `Ahead` names of the standard errors' program (`stage1_information`) and of stage 1's loss alone
+#: (`stage1_value`, for the support's start grid and the restarts, as the laws are screened).
 INFORMATION_PROGRAM = "stage 1's standard errors"
+LOSS_PROGRAM = "stage 1's loss"
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
 #: Criterion (AIC or BIC) behind the best screened candidate within which a candidate is refined too before one is
@@ -181,30 +185,22 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
             text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, x[-2:]))
         return text
 
+    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh)
+
     def problem(
         law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates, screened: bool = False
-    ):
-        """(guess, objective of the free coordinates on the chunks `records`, their start) for one contact law
-        (`screened`: as the laws are screened)."""
+    ) -> Problem:
+        """One contact law's `Problem` on the chunks `records` (`screened`: as the laws are screened)."""
         guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
         guess_log = jnp.asarray(log_nominal(guess))
-        base = law_model(screening(law) if screened else law)
         records = tuple(map(screened_records, records)) if screened else records
-        objective = coordinates.objective(
-            lambda theta: stage1_value_and_grad_over(
-                records,
-                theta,
-                guess_log,
-                base,
-                screen_noise if screened else noise,
-                scales,
-                prior_width=settings.prior_width,
-                h=h,
-                kind=kind,
-                mesh=mesh,
-            )
+        base = law_model(screening(law) if screened else law)
+        arguments = (guess_log, base, screen_noise if screened else noise, scales)
+        return Problem(
+            coordinates.objective(lambda theta: stage1_value_and_grad_over(records, theta, *arguments, **static)),
+            coordinates.loss(lambda theta: stage1_value_over(records, theta, *arguments, **static)),
+            coordinates.initial(log_f0=guess_log),
         )
-        return guess, objective, coordinates.initial(log_f0=guess_log)
 
     def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
         """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
@@ -217,13 +213,11 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         with_support = Coordinates(
             start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True)
         )
-        objective = problem(law, (records,), with_support, screened=True)[1]
+        supported = problem(law, (records,), with_support, screened=True)
         kept = {"log_f0": theta_rigid.log_f0, "log_q": theta_rigid.log_q, "effects": theta_rigid.effects}
-        x0 = min(
-            (with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=lambda v: objective(v)[0]
-        )
+        x0 = min((with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=supported.loss)
         x, convergence = minimise(
-            objective, x0, settings.calibration_steps, tolerance, label, stream, describe,
+            supported.objective, x0, settings.calibration_steps, tolerance, label, stream, describe,
             bounds=with_support.bounds(scales),
         )
         return with_support, x, convergence
@@ -236,9 +230,14 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
     if ahead is not None:
+        ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
+            LOSS_PROGRAM, stage1_value, start_coordinates.theta(start_coordinates.initial()),
+            jnp.asarray(log_nominal(config.nominal)), law_model(screening(settings.contact_laws[0])), screen_noise,
+            scales, screened_records(screen_batch), prior_weight=1.0, **static,
+        )
         ahead.start()  # the first law's fit compiles stage 1 now, beside them
     for law in settings.contact_laws:
-        guess, objective, x0 = problem(law, (screen_batch,), screened=True)
+        objective, loss, x0 = problem(law, (screen_batch,), screened=True)
         x, convergence = minimise(
             objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe,
             bounds=coordinates.bounds(scales),
@@ -254,7 +253,9 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        restart = damping_restart(objective, coordinates.names, x, convergence.final_loss, stream) if thorough else None
+        if ahead is not None:
+            ahead.wait(LOSS_PROGRAM)
+        restart = damping_restart(loss, coordinates.names, x, convergence.final_loss, stream) if thorough else None
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, screen_tolerance,
@@ -288,7 +289,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         """Whether the yielding candidate's own fit, its support made rigid, falls more than
         FINALIST_MARGIN behind it on the screening bags: its knee lies within their forces."""
         theta = c.coordinates.theta(c.x)._replace(log_support=jnp.asarray(RIGID_LOG_SUPPORT))
-        rigid_loss = problem(c.law, (screen_batch,), screened=True)[1](coordinates.initial(**theta._asdict()))[0]
+        rigid_loss = problem(c.law, (screen_batch,), screened=True).loss(coordinates.initial(**theta._asdict()))
         return criterion(rigid_loss, 0, n_screen, kind) - c.score > FINALIST_MARGIN
 
     # A yielding finalist whose support does not act on the screening bags is judged against its own
@@ -316,11 +317,11 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
             # where the loss no longer depends on it and it stays.
             held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False))
             x_held, held_convergence = minimise(
-                problem(c.law, chunks, held)[1], held.initial(), settings.calibration_steps, settings.tolerance,
+                problem(c.law, chunks, held).objective, held.initial(), settings.calibration_steps, settings.tolerance,
                 f"calibrate {c.name}, refined with the support held", stream, describe, bounds=held.bounds(scales),
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
-        objective = problem(c.law, chunks, c.coordinates)[1]
+        objective, loss, _ = problem(c.law, chunks, c.coordinates)
         x_start = x
         x, convergence = minimise(
             objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
@@ -328,7 +329,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         )
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
-        restart = friction_restart(objective, names, x, convergence.final_loss, stream) if spinning else None
+        restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, settings.tolerance,
@@ -471,6 +472,14 @@ def effect_relative_sd(sd: dict[str, float], scaled: Effects, scales: Effects) -
     return out
 
 
+class Problem(NamedTuple):
+    """Stage 1 for one contact law on some records, as functions of the free coordinates."""
+
+    objective: Callable[[np.ndarray], tuple[float, np.ndarray]]  # the loss and its gradient (for `minimise`)
+    loss: Callable[[np.ndarray], float]  # the loss alone (start grids, restarts)
+    start: np.ndarray  # the free coordinates at the YAML's guess
+
+
 class Candidate(NamedTuple):
     """One screened stage-1 fit: a contact law, rigid or with a yielding axial support."""
 
@@ -516,8 +525,7 @@ DAMPING_RESTART_FACTORS = (10.0, 100.0, 1000.0)
 
 
 def damping_restart(
-    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], names: Sequence[str], x: np.ndarray, loss: float,
-    stream,
+    loss_of: Callable[[np.ndarray], float], names: Sequence[str], x: np.ndarray, loss: float, stream
 ) -> np.ndarray | None:
     """x (where the loss is `loss`) with c_R, then c_Z, multiplied by the factor of
     `DAMPING_RESTART_FACTORS` that lowers the loss most (the free coordinates are logarithms); None
@@ -530,7 +538,7 @@ def damping_restart(
         for factor in DAMPING_RESTART_FACTORS:
             trial = start.copy()
             trial[names.index(name)] += np.log(factor)
-            trial_loss = objective(trial)[0]
+            trial_loss = loss_of(trial)
             if trial_loss < best_loss:
                 best, best_loss = trial, trial_loss
                 print(f"[damping restart] {name} x{factor:g} lowers the loss to {trial_loss:.7g}", file=stream)
@@ -545,8 +553,7 @@ FRICTION_RESTART_VALUES = (0.1, 0.2, 0.4)
 
 
 def friction_restart(
-    objective: Callable[[np.ndarray], tuple[float, np.ndarray]], names: Sequence[str], x: np.ndarray, loss: float,
-    stream,
+    loss_of: Callable[[np.ndarray], float], names: Sequence[str], x: np.ndarray, loss: float, stream
 ) -> np.ndarray | None:
     """x (where the loss is `loss`) with mu and k_ZR set to the pair of `FRICTION_RESTART_VALUES`
     that lowers the loss most (the free coordinates are logarithms); None if none lowers it."""
@@ -555,7 +562,7 @@ def friction_restart(
         for k_ZR in FRICTION_RESTART_VALUES:
             trial = x.copy()
             trial[names.index("mu")], trial[names.index("k_ZR")] = np.log(mu), np.log(k_ZR)
-            trial_loss = objective(trial)[0]
+            trial_loss = loss_of(trial)
             if trial_loss < best_loss:
                 best, best_loss = trial, trial_loss
                 print(f"[friction restart] mu {mu:g}, k_ZR {k_ZR:g} lower the loss to {trial_loss:.7g}", file=stream)
