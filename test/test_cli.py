@@ -1,4 +1,5 @@
 """The `touchdown` command end to end, through real bags written and read back."""
+import io
 import json
 import os
 import subprocess
@@ -252,6 +253,40 @@ def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothin
     assert sorted(name for name, _ in compiled) == [
         "jit(leave_one_out_squares)", "jit(stage1_information)", "jit(stage1_value)", "jit(stage2_value_and_grad)"
     ]
+    assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
+
+
+def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_beside_the_loss(drop_bags):
+    """`fit_candidates` (diagnose's fits) compiles the measures' and the standard errors' programs in the
+    background thread while the baseline's fit compiles the loss: the fits find them."""
+    import threading
+
+    import jax
+
+    from touchdown_ros.workflows.ahead import THREAD_NAME
+    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
+    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
+
+    watched = {"jit(sample_measures)", "jit(stage1_information)"}
+    compiled: list[tuple[str, str]] = []
+
+    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched:
+            compiled.append((fun_name, threading.current_thread().name))
+
+    data = load_training_data(CONFIG, [drop_bags / "exp_01", drop_bags / "exp_11"])
+    # records of 433 samples: a shape no other test compiles these programs for in this process
+    data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        # two candidates of 1 and 2 parameters: the standard errors' tangents are padded to the larger
+        selection = fit_candidates(CONFIG, CONFIG.model(), data, ["axial_load", "magnetic_stiffness"],
+                                   FitSettings(steps=3, per_bag=1, from_best=0), io.StringIO())
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert [f.name for f in selection.fits] == ["none", "axial_load", "magnetic_stiffness"]
+    assert all(f.sd for f in selection.fits[1:])
+    assert sorted(name for name, _ in compiled) == ["jit(sample_measures)", "jit(stage1_information)"]
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 
 

@@ -20,6 +20,7 @@ from touchdown_ros.core.calibration import (
     information_standard_errors,
     log_nominal,
     stage1_flags,
+    stage1_information,
     stage1_information_over,
     stage1_model_and_noise,
     stage1_start,
@@ -44,9 +45,16 @@ from touchdown_ros.core.selection import (
 from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
+from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
+
+
+#: `Ahead` names of the programs the fits call after their loss's: each fit's measures on the held-out
+#: samples (`sample_measures`) and a candidate's standard errors (`stage1_information`).
+MEASURES_PROGRAM = "the candidates' measures"
+INFORMATION_PROGRAM = "the candidates' standard errors"
 
 
 @dataclass(frozen=True)
@@ -98,8 +106,12 @@ class Selection:
 class _Problem:
     """The calibrated model with every candidate, its batch and the one compiled objective."""
 
-    def __init__(self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int):
-        self.config, self.k = config, k
+    def __init__(
+        self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int,
+        ahead: Ahead | None = None,
+    ):
+        self.config, self.k, self.ahead = config, k, ahead
+        self.own = tuple(model.effects.names)  # the model's own effects, fitted with every candidate
         self.effects = with_candidates(model.effects, candidates)
         self.candidates = tuple(candidates)
         self.base = model._replace(effects=self.effects)
@@ -117,6 +129,25 @@ class _Problem:
         # the most coordinates a fit frees: f0, the Q factors, the model's effects and the largest candidate
         own = sum(len(p) for p in model.effects.params)
         self.tangents = len(PARAMETER_NAMES) + len(Q_NAMES) + own + max([len(c.parameters) for c in candidates] or [0])
+
+    def compile_ahead(self) -> None:
+        """Queue the measures' and the standard errors' programs in `self.ahead`, with arguments of the
+        types `evaluate` and `information` pass: they compile beside the baseline's fit, which compiles
+        the loss's."""
+        baseline = stage1_flags(self.effects, True, fitted_effects=self.own)
+        coordinates = Coordinates(self.start, baseline)
+        theta = coordinates.theta(coordinates.initial())
+        batch, h = self.gated(None), self.config.sample_period
+        model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
+        self.ahead.compile(MEASURES_PROGRAM, self.measure, model, noise, h, batch, self.k)
+        self.ahead.compile(
+            INFORMATION_PROGRAM, stage1_information, theta, coordinates.directions(self.tangents), self.base,
+            self.noise, self.scales, h, place(batch, self.mesh), "nll", self.mesh,
+        )
+
+    def _wait(self, name: str) -> None:
+        if self.ahead is not None:
+            self.ahead.wait(name)
 
     def rescale(self, states: np.ndarray) -> None:
         """Scale the candidates' parameters by the force they move along these states (`force_scaled`:
@@ -148,6 +179,7 @@ class _Problem:
         """`stage1_information` of the free coordinates at x on the fitted samples of `batch` (their
         tangents padded to the most any fit frees: one compilation for every candidate)."""
         count = len(coordinates.names)
+        self._wait(INFORMATION_PROGRAM)
         information = stage1_information_over(
             (place(batch, self.mesh),), coordinates.theta(x), coordinates.directions(self.tangents), self.base,
             self.noise, self.scales, self.config.sample_period, "nll", self.mesh,
@@ -160,6 +192,7 @@ class _Problem:
 
     def evaluate(self, theta: Stage1, batch: Batch) -> SampleMeasures:
         model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
+        self._wait(MEASURES_PROGRAM)
         return self.measure(model, noise, self.config.sample_period, batch, self.k)
 
 
@@ -176,9 +209,20 @@ def fit_candidates(
     file's or the YAML's), on the records' fitted samples; measure each on the held-out samples;
     fit the baseline and the `settings.from_best` next candidates again from the best one's
     constants, keeping the lower loss; fit the `settings.per_bag` best (by the criterion) again bag
-    by bag, their constants kept."""
-    candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
-    problem = _Problem(config, model, candidates, data, settings.k)
+    by bag, their constants kept. The measures' and standard errors' programs compile in a background
+    thread while the baseline's fit compiles the loss's (`Ahead`)."""
+    with Ahead(stream) as ahead:
+        candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
+        problem = _Problem(config, model, candidates, data, settings.k, ahead)
+        problem.compile_ahead()
+        ahead.start()
+        return _fit_candidates(config, model, data, problem, settings, stream)
+
+
+def _fit_candidates(
+    config: Config, model: Model, data: TrainingData, problem: _Problem, settings: FitSettings, stream
+) -> Selection:
+    candidates = problem.candidates
     slots = {BASELINE: (None, None), **{effect.name: (chosen, effect) for chosen, effect in enumerate(candidates)}}
     phases: np.ndarray | None = None
 
