@@ -208,29 +208,6 @@ def stage1_objective(
 
 
 @functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
-def stage1_value_and_grad(
-    theta: Stage1,
-    guess_log_f0: Array,
-    base: Model,
-    noise: FilterNoise,
-    scales: Effects,
-    batch: Batch,
-    *,
-    prior_width: float,
-    h: float,
-    kind: str,
-    mesh: Mesh | None = None,
-    prior_weight: float | Array = 1.0,
-) -> tuple[Array, Stage1]:
-    """`stage1_objective` and its gradient, compiled once per (prior width, h, loss, mesh) and batch
-    shape: the model, noise, scales, records (their effects' gates too) and prior weight are traced,
-    so other values reuse it."""
-    return jax.value_and_grad(stage1_objective)(
-        theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh, prior_weight
-    )
-
-
-@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
 def stage1_value(
     theta: Stage1,
     guess_log_f0: Array,
@@ -245,10 +222,18 @@ def stage1_value(
     mesh: Mesh | None = None,
     prior_weight: float | Array = 1.0,
 ) -> Array:
-    """`stage1_objective` alone, where only losses are compared (start grids, restarts): the filter
-    without its gradient, about a quarter of `stage1_value_and_grad`'s call (23 against 99 ms on six
-    campaign records) and a seventh of its compilation."""
+    """`stage1_objective`, compiled once per (prior width, h, loss, mesh) and batch shape: the model,
+    noise, scales, records (their effects' gates too) and prior weight are traced, so other values
+    reuse it. Alone where only losses are compared (start grids, restarts): the filter without its
+    gradient, about a quarter of `stage1_value_and_grad`'s call (23 against 99 ms on six campaign
+    records) and a seventh of its compilation."""
     return stage1_objective(theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh, prior_weight)
+
+
+@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
+def stage1_value_and_grad(theta: Stage1, *arguments, **static) -> tuple[Array, Stage1]:
+    """`stage1_value` (the same arguments) and its gradient by theta."""
+    return jax.value_and_grad(stage1_value.__wrapped__)(theta, *arguments, **static)
 
 
 def _over_chunks(chunks: Sequence[Batch], call: Callable[[Batch, float], Any]) -> list[tuple[float, Any]]:
