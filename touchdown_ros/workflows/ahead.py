@@ -5,6 +5,7 @@ later, the standard errors' and stage 2's programs, each while the other core wa
 shapes are known from the bags and the rig YAML before stage 1 starts, and the programs take the
 calibrated values as arguments, so they can be compiled while stage 1's is: `jit(f).lower(...).compile()`
 fills the same cache the later call looks in (JAX's, in memory, and the persistent one on disk).
+`diagnose` does the same with its fits' measures and standard errors while the first fit compiles the loss.
 """
 from __future__ import annotations
 
