@@ -44,9 +44,9 @@ class Ahead:
     def compile_first(self, name: str, jitted: Any, *args: Any, **kwargs: Any) -> None:
         """`compile`, but before the compilations queued so far (a program needed sooner), if `start` is
         still to come; after it, in turn like any other."""
-        self._queued = {name: lambda: jitted.lower(*args, **kwargs).compile(), **self._queued}
-        if self._started:
-            self.start()
+        self.compile(name, jitted, *args, **kwargs)
+        if name in self._queued:
+            self._queued = {name: self._queued.pop(name), **self._queued}
 
     def start(self) -> None:
         """Begin the queued compilations (those queued later begin at once)."""

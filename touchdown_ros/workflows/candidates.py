@@ -108,10 +108,10 @@ class _Problem:
 
     def __init__(
         self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int,
-        ahead: Ahead | None = None,
+        ahead: Ahead,
     ):
         self.config, self.k, self.ahead = config, k, ahead
-        self.own = tuple(model.effects.names)  # the model's own effects, fitted with every candidate
+        self.own_effects = tuple(model.effects.names)  # fitted with every candidate
         self.effects = with_candidates(model.effects, candidates)
         self.candidates = tuple(candidates)
         self.base = model._replace(effects=self.effects)
@@ -134,7 +134,7 @@ class _Problem:
         """Queue the measures' and the standard errors' programs in `self.ahead`, with arguments of the
         types `evaluate` and `information` pass: they compile beside the baseline's fit, which compiles
         the loss's."""
-        baseline = stage1_flags(self.effects, True, fitted_effects=self.own)
+        baseline = stage1_flags(self.effects, True, fitted_effects=self.own_effects)
         coordinates = Coordinates(self.start, baseline)
         theta = coordinates.theta(coordinates.initial())
         batch, h = self.gated(None), self.config.sample_period
@@ -144,10 +144,6 @@ class _Problem:
             INFORMATION_PROGRAM, stage1_information, theta, coordinates.directions(self.tangents), self.base,
             self.noise, self.scales, h, place(batch, self.mesh), "nll", self.mesh,
         )
-
-    def _wait(self, name: str) -> None:
-        if self.ahead is not None:
-            self.ahead.wait(name)
 
     def rescale(self, states: np.ndarray) -> None:
         """Scale the candidates' parameters by the force they move along these states (`force_scaled`:
@@ -179,7 +175,7 @@ class _Problem:
         """`stage1_information` of the free coordinates at x on the fitted samples of `batch` (their
         tangents padded to the most any fit frees: one compilation for every candidate)."""
         count = len(coordinates.names)
-        self._wait(INFORMATION_PROGRAM)
+        self.ahead.wait(INFORMATION_PROGRAM)
         information = stage1_information_over(
             (place(batch, self.mesh),), coordinates.theta(x), coordinates.directions(self.tangents), self.base,
             self.noise, self.scales, self.config.sample_period, "nll", self.mesh,
@@ -192,7 +188,7 @@ class _Problem:
 
     def evaluate(self, theta: Stage1, batch: Batch) -> SampleMeasures:
         model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
-        self._wait(MEASURES_PROGRAM)
+        self.ahead.wait(MEASURES_PROGRAM)
         return self.measure(model, noise, self.config.sample_period, batch, self.k)
 
 
