@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from typing import Any, Callable
 
 import numpy as np
 import pytest
@@ -225,65 +226,77 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
     assert not (out / "broken_estimate").exists()
 
 
-def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):
-    """Stage 1's loss alone (for the support's start grid and the restarts), stage 2's program, stage 1's
-    standard errors' and the smoothing noise's are compiled in the background thread from the rig YAML's
-    shapes while stage 1 compiles and runs, before it has calibrated the values they are later called with
-    (other constants, centres placed on the data): the calls find them and compile nothing again."""
+def compilations(watched: set[str], run: Callable[[], Any]) -> tuple[Any, list[tuple[str, str]]]:
+    """run()'s result and the (program, thread) of each XLA compilation of a `watched` jit name during it."""
     import threading
 
     import jax
 
-    from touchdown_ros.workflows.ahead import THREAD_NAME
-
-    watched = ("stage1_value", "stage2_value_and_grad", "stage1_information", "leave_one_out_squares")
-    compiled: list[tuple[str, str]] = []
-
-    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and fun_name in {f"jit({w})" for w in watched}:
-            compiled.append((fun_name, threading.current_thread().name))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:  # records of 430 samples: a shape no other test compiles these programs for in this process
-        code = main(["train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
-                     "--duration", "0.043", "--steps", "0", "-p", "training.contact_laws:=[linear]"])
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert code == 0
-    assert sorted(name for name, _ in compiled) == [
-        "jit(leave_one_out_squares)", "jit(stage1_information)", "jit(stage1_value)", "jit(stage2_value_and_grad)"
-    ]
-    assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
-
-
-def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_beside_the_loss(drop_bags):
-    """`fit_candidates` (diagnose's fits) compiles the measures' and the standard errors' programs in the
-    background thread while the baseline's fit compiles the loss: the fits find them."""
-    import threading
-
-    import jax
-
-    from touchdown_ros.workflows.ahead import THREAD_NAME
-    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
-    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
-
-    watched = {"jit(sample_measures)", "jit(stage1_information)"}
     compiled: list[tuple[str, str]] = []
 
     def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
         if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched:
             compiled.append((fun_name, threading.current_thread().name))
 
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        return run(), compiled
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):
+    """Stage 1's loss alone (for the support's start grid and the restarts), stage 2's program, stage 1's
+    standard errors' and the smoothing noise's are compiled in the background thread from the rig YAML's
+    shapes while stage 1 compiles and runs, before it has calibrated the values they are later called with
+    (other constants, centres placed on the data): the calls find them and compile nothing again."""
+    from touchdown_ros.workflows.ahead import THREAD_NAME
+
+    watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_information)",
+               "jit(leave_one_out_squares)"}
+    # records of 430 samples: a shape no other test compiles these programs for in this process
+    code, compiled = compilations(watched, lambda: main([
+        "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
+        "--duration", "0.043", "--steps", "0", "-p", "training.contact_laws:=[linear]",
+    ]))
+    assert code == 0
+    assert sorted(name for name, _ in compiled) == sorted(watched)
+    assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
+
+
+def test_train_with_a_spinning_ring_compiles_the_refinements_programs_ahead(drop_bags, tmp_path):
+    """With the ring's speed a state the laws are screened with the ring turning with the rotor and refined
+    with its state: another loss-and-gradient and another loss alone, compiled in the background while
+    the laws are screened. Only the screening's loss-and-gradient is compiled where it is called."""
+    from touchdown_ros.workflows.ahead import THREAD_NAME
+
+    # records of 420 samples: a shape no other test compiles these programs for in this process
+    code, compiled = compilations({"jit(stage1_value)", "jit(stage1_value_and_grad)"}, lambda: main([
+        "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
+        "--duration", "0.042", "--steps", "0", "-p", "training.contact_laws:=[linear]",
+        "-p", "contact.friction:=spinning_ring", "-p", "training.axial_support:=rigid",
+    ]))
+    assert code == 0
+    ahead = sorted(name for name, thread in compiled if thread.startswith(THREAD_NAME))
+    assert ahead == ["jit(stage1_value)", "jit(stage1_value)", "jit(stage1_value_and_grad)"]
+    assert [name for name, thread in compiled if not thread.startswith(THREAD_NAME)] == ["jit(stage1_value_and_grad)"]
+
+
+def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_beside_the_loss(drop_bags):
+    """`fit_candidates` (diagnose's fits) compiles the measures' and the standard errors' programs in the
+    background thread while the baseline's fit compiles the loss: the fits find them."""
+    from touchdown_ros.workflows.ahead import THREAD_NAME
+    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
+    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
+
     data = load_training_data(CONFIG, [drop_bags / "exp_01", drop_bags / "exp_11"])
     # records of 433 samples: a shape no other test compiles these programs for in this process
     data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        # two candidates of 1 and 2 parameters: the standard errors' tangents are padded to the larger
-        selection = fit_candidates(CONFIG, CONFIG.model(), data, ["axial_load", "magnetic_stiffness"],
-                                   FitSettings(steps=3, per_bag=1, from_best=0), io.StringIO())
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
+    # two candidates of 1 and 2 parameters: the standard errors' tangents are padded to the larger
+    selection, compiled = compilations({"jit(sample_measures)", "jit(stage1_information)"}, lambda: fit_candidates(
+        CONFIG, CONFIG.model(), data, ["axial_load", "magnetic_stiffness"],
+        FitSettings(steps=3, per_bag=1, from_best=0), io.StringIO(),
+    ))
     assert [f.name for f in selection.fits] == ["none", "axial_load", "magnetic_stiffness"]
     assert all(f.sd for f in selection.fits[1:])
     assert sorted(name for name, _ in compiled) == ["jit(sample_measures)", "jit(stage1_information)"]

@@ -29,6 +29,7 @@ from touchdown_ros.core.calibration import (
     stage1_model_and_noise,
     stage1_start,
     stage1_value,
+    stage1_value_and_grad,
     stage1_value_and_grad_over,
     stage1_value_over,
     standard_errors_and_correlation,
@@ -61,6 +62,10 @@ from touchdown_ros.workflows.training_data import (
 #: (`stage1_value`, for the support's start grid and the restarts, as the laws are screened).
 INFORMATION_PROGRAM = "stage 1's standard errors"
 LOSS_PROGRAM = "stage 1's loss"
+#: With a spinning ring, the refinement's loss-and-gradient and loss alone: the ring's speed a state, another
+#: program than the screening's (the ring turning with the rotor).
+RING_REFINEMENT_PROGRAM = "stage 1's refinement with the ring's speed"
+RING_RESTART_PROGRAM = "stage 1's loss with the ring's speed"
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
 #: Criterion (AIC or BIC) behind the best screened candidate within which a candidate is refined too before one is
@@ -230,10 +235,16 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
     if ahead is not None:
+        initial_theta, guess_log = start_coordinates.theta(start_coordinates.initial()), jnp.asarray(log_nominal(config.nominal))
+        if spinning:  # needed once the laws are screened (the refinement), before stage 2's and the standard errors'
+            refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
+            ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, prior_weight=1.0 / len(chunks), **static)
+            ahead.compile_first(
+                RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, prior_weight=1.0 / len(chunks), **static
+            )
         ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
-            LOSS_PROGRAM, stage1_value, start_coordinates.theta(start_coordinates.initial()),
-            jnp.asarray(log_nominal(config.nominal)), law_model(screening(settings.contact_laws[0])), screen_noise,
-            scales, screened_records(screen_batch), prior_weight=1.0, **static,
+            LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
+            screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
         )
         ahead.start()  # the first law's fit compiles stage 1 now, beside them
     for law in settings.contact_laws:
@@ -308,6 +319,9 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
             + "; refined: " + ", ".join(c.name for c in finalists),
             file=stream,
         )
+    if ahead is not None and spinning:
+        ahead.wait(RING_REFINEMENT_PROGRAM)
+        ahead.wait(RING_RESTART_PROGRAM)
     refined = []
     for c in finalists:
         x = c.x
