@@ -235,13 +235,13 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
     if ahead is not None:
-        initial_theta, guess_log = start_coordinates.theta(start_coordinates.initial()), jnp.asarray(log_nominal(config.nominal))
+        initial_theta = start_coordinates.theta(start_coordinates.initial())
+        guess_log = jnp.asarray(log_nominal(config.nominal))
         if spinning:  # needed once the laws are screened (the refinement), before stage 2's and the standard errors'
             refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
-            ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, prior_weight=1.0 / len(chunks), **static)
-            ahead.compile_first(
-                RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, prior_weight=1.0 / len(chunks), **static
-            )
+            chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
+            ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
+            ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
         ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
             LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
             screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
