@@ -292,11 +292,56 @@ def test_a_compilation_queued_first_ahead_is_compiled_before_those_queued_earlie
             ahead.compile("later", jax.jit(later), np.zeros(7))
             ahead.compile_first("sooner", jax.jit(sooner), np.zeros(7))
             ahead.start()
-            ahead.wait("later")
             ahead.wait("sooner")
+            ahead.wait("later")
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
     assert order == ["jit(sooner)", "jit(later)"]
+
+
+def test_a_compilation_waited_for_before_its_turn_is_compiled_at_once_beside_the_one_under_way():
+    """A program needed while the background thread still compiles another (with a spinning ring, stage
+    1's standard errors while stage 2's compiles) is compiled at once beside it, not after it."""
+    import threading
+
+    from touchdown_ros.workflows.ahead import THREAD_NAME, Ahead
+
+    release, finished = threading.Event(), threading.Event()
+
+    class Lengthy:
+        """A program whose compilation lasts until released (at most 20 s)."""
+
+        def lower(self, *args, **kwargs) -> "Lengthy":
+            return self
+
+        def compile(self) -> None:
+            release.wait(20.0)
+            finished.set()
+
+    threads: list[str] = []
+
+    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name == "jit(needed)":
+            threads.append(threading.current_thread().name)
+
+    def needed(x):
+        return x - 5.0
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        with Ahead(io.StringIO()) as ahead:
+            ahead.compile("under way", Lengthy())
+            ahead.compile("needed", jax.jit(needed), np.zeros(5))
+            ahead.start()
+            ahead.wait("needed")
+            under_way_meanwhile = not finished.is_set()
+            release.set()
+            ahead.wait("under way")
+    finally:
+        release.set()
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert under_way_meanwhile
+    assert threads == [f"{THREAD_NAME}-needed_0"]
 
 
 def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it():

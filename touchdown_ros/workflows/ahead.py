@@ -21,7 +21,8 @@ THREAD_NAME = "touchdown-compile-ahead"
 
 class Ahead:
     """A queue of compilations run one at a time in a background thread, in the order given (those queued
-    with `compile_first` before the others), from `start`.
+    with `compile_first` before the others), from `start`; one waited for before its turn is compiled at
+    once in a second thread.
 
     Tracing a program is Python, which holds the interpreter's lock: begun while the caller's own
     Python work goes on (reading bags, the data's scales), it slows that work by as much. So the
@@ -29,8 +30,10 @@ class Ahead:
 
     def __init__(self, stream=STDERR):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_NAME)
+        # a job waited for while it is still queued behind others: compiled at once beside them
+        self._needed = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{THREAD_NAME}-needed")
         self._queued: dict[str, Callable[[], Any]] = {}
-        self._jobs: dict[str, Future] = {}
+        self._jobs: dict[str, tuple[Future, Callable[[], Any]]] = {}
         self._stream = stream
         self._started = False
 
@@ -52,17 +55,20 @@ class Ahead:
         """Begin the queued compilations (those queued later begin at once)."""
         self._started = True
         for name, build in self._queued.items():
-            self._jobs[name] = self._pool.submit(build)
+            self._jobs[name] = (self._pool.submit(build), build)
         self._queued.clear()
 
     def wait(self, name: str) -> None:
         """Block until `name` is compiled (the later call then finds it instead of compiling it a second
-        time beside the first); one never started is dropped (the call compiles it). A failure only
-        means the call compiles it: a note says so, no error."""
+        time beside the first); one never started is dropped (the call compiles it). One still waiting
+        behind others in the queue is compiled at once, beside the one under way (the caller's core is
+        idle meanwhile). A failure only means the call compiles it: a note says so, no error."""
         self._queued.pop(name, None)
-        job = self._jobs.pop(name, None)
+        job, build = self._jobs.pop(name, (None, None))
         if job is None:
             return
+        if job.cancel():  # still queued
+            job = self._needed.submit(build)
         try:
             job.result()
         except Exception as error:  # noqa: BLE001 (an optimisation failed: the call compiles it itself)
@@ -72,6 +78,7 @@ class Ahead:
     def close(self) -> None:
         """Drop the compilations not yet started; one under way finishes in the background."""
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._needed.shutdown(wait=False)
 
     def __enter__(self) -> "Ahead":
         return self
