@@ -128,7 +128,8 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
     guess; keep the candidate with the lowest information criterion (`training.search`). With `ahead`,
-    the standard errors' program is compiled in the background while the laws are fitted."""
+    the loss alone's and the standard errors' programs (and with a spinning ring the refinement's) are
+    compiled in the background while the laws are fitted."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print(
@@ -321,7 +322,6 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         )
     if ahead is not None and spinning:
         ahead.wait(RING_REFINEMENT_PROGRAM)
-        ahead.wait(RING_RESTART_PROGRAM)
     refined = []
     for c in finalists:
         x = c.x
@@ -343,6 +343,8 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         )
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
+        if ahead is not None and spinning:
+            ahead.wait(RING_RESTART_PROGRAM)
         restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
         if restart is not None:
             x, again = minimise(
