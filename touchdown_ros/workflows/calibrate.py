@@ -124,12 +124,12 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
     return np.asarray(jax.jit(lambda b: jnp.sum(sample_errors(model, noise, h, b, kind), axis=1))(batch))
 
 
-def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | None = None) -> Calibration:
+def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
-    guess; keep the candidate with the lowest information criterion (`training.search`). With `ahead`,
-    the loss alone's and the standard errors' programs (and with a spinning ring the refinement's) are
-    compiled in the background while the laws are fitted."""
+    guess; keep the candidate with the lowest information criterion (`training.search`). The loss alone's
+    and the standard errors' programs (and with a spinning ring the refinement's) are compiled in `ahead`'s
+    background thread while the laws are fitted."""
     settings = config.training
     sigma = measured_sensor_noise(config, data, stream)
     print(
@@ -162,12 +162,11 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     # The standard errors' tangents are padded to the most coordinates a candidate frees (with a
     # yielding support), so one program, compiled while the laws are fitted, serves the chosen one.
     most_free = len(Coordinates(start, stage1_flags(effects, fit_q, fit_support=True)).names)
-    if ahead is not None:
-        ahead.compile(
-            INFORMATION_PROGRAM, stage1_information, start_coordinates.theta(start_coordinates.initial()),
-            start_coordinates.directions(most_free), law_model(settings.contact_laws[0]), noise, scales, h, chunks[0],
-            kind, mesh,
-        )
+    initial_theta = start_coordinates.theta(start_coordinates.initial())
+    ahead.compile(
+        INFORMATION_PROGRAM, stage1_information, initial_theta, start_coordinates.directions(most_free),
+        law_model(settings.contact_laws[0]), noise, scales, h, chunks[0], kind, mesh,
+    )
 
     # With the ring's speed as a state the loss far from the rig's constants is rough (the ring sticks
     # and slips as they move): the laws are screened with the ring turning with the rotor (its speed
@@ -235,19 +234,17 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
-    if ahead is not None:
-        initial_theta = start_coordinates.theta(start_coordinates.initial())
-        guess_log = jnp.asarray(log_nominal(config.nominal))
-        if spinning:  # needed once the laws are screened (the refinement), before stage 2's and the standard errors'
-            refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
-            chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
-            ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
-            ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
-        ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
-            LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
-            screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
-        )
-        ahead.start()  # the first law's fit compiles stage 1 now, beside them
+    guess_log = jnp.asarray(log_nominal(config.nominal))
+    if spinning:  # needed once the laws are screened (the refinement), before stage 2's and the standard errors'
+        refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
+        chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
+        ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
+        ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
+    ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
+        LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
+        screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
+    )
+    ahead.start()  # the first law's fit compiles stage 1 now, beside them
     for law in settings.contact_laws:
         objective, loss, x0 = problem(law, (screen_batch,), screened=True)
         x, convergence = minimise(
@@ -265,8 +262,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
-        if ahead is not None:
-            ahead.wait(LOSS_PROGRAM)
+        ahead.wait(LOSS_PROGRAM)
         restart = damping_restart(loss, coordinates.names, x, convergence.final_loss, stream) if thorough else None
         if restart is not None:
             x, again = minimise(
@@ -320,7 +316,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
             + "; refined: " + ", ".join(c.name for c in finalists),
             file=stream,
         )
-    if ahead is not None and spinning:
+    if spinning:
         ahead.wait(RING_REFINEMENT_PROGRAM)
     refined = []
     for c in finalists:
@@ -343,7 +339,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
         )
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
-        if ahead is not None and spinning:
+        if spinning:
             ahead.wait(RING_RESTART_PROGRAM)
         restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
         if restart is not None:
@@ -386,8 +382,7 @@ def calibrate(config: Config, data: TrainingData, stream=STDERR, ahead: Ahead | 
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
-    if ahead is not None:
-        ahead.wait(INFORMATION_PROGRAM)
+    ahead.wait(INFORMATION_PROGRAM)
     free = len(coordinates.names)
     information = stage1_information_over(
         chunks, theta, coordinates.directions(most_free), law_model(law), noise, scales, h, kind, mesh

@@ -459,7 +459,7 @@ def _train(
             initial, progress = _resumed_path(config, calibrated, out, loaded.training.extra, initial)
     else:
         compile_stage2_ahead(ahead, config, data)
-        calibration = calibrate(config, data, stream, ahead)
+        calibration = calibrate(config, data, ahead, stream)
         calibrated = calibration.config
         stage1 = calibration.summary()
         if config.training.placement == "data":
