@@ -1,9 +1,12 @@
 """What the tests share: simulated drop-test bags (the simulator's Table 1 experiments, truth included),
-and library effects by name."""
+library effects by name, and a watch on XLA compilations."""
 from __future__ import annotations
 
+import threading
 from pathlib import Path
+from typing import Any, Callable
 
+import jax
 import numpy as np
 import pytest
 
@@ -23,6 +26,21 @@ def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config |
     record = simulate_drop(config, CAMPAIGN[experiment - 1], seed=seed, params=params)
     write_drop_bag(record, config, path)
     return record
+
+
+def compilations(watched: set[str], run: Callable[[], Any]) -> tuple[Any, list[tuple[str, str]]]:
+    """run()'s result and the (program, thread) of each XLA compilation of a `watched` jit name during it."""
+    compiled: list[tuple[str, str]] = []
+
+    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched:
+            compiled.append((fun_name, threading.current_thread().name))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        return run(), compiled
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def central_differences(f, x, scales):

@@ -4,12 +4,12 @@ import json
 import os
 import subprocess
 import sys
-from typing import Any, Callable
 
 import numpy as np
 import pytest
 import yaml
 from rosbags.highlevel import AnyReader
+from conftest import compilations
 
 from touchdown_ros.cli import main
 from touchdown_ros.io.bags import TYPESTORE, list_topics, read_displacement, read_vector_topic
@@ -224,25 +224,6 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
     assert main(["estimate", str(garbage), "-o", str(out)]) == 3
     assert "broken.mcap" in capsys.readouterr().err
     assert not (out / "broken_estimate").exists()
-
-
-def compilations(watched: set[str], run: Callable[[], Any]) -> tuple[Any, list[tuple[str, str]]]:
-    """run()'s result and the (program, thread) of each XLA compilation of a `watched` jit name during it."""
-    import threading
-
-    import jax
-
-    compiled: list[tuple[str, str]] = []
-
-    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched:
-            compiled.append((fun_name, threading.current_thread().name))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        return run(), compiled
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):

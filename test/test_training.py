@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import compilations
 
 from touchdown_ros.core.dynamics import rk4_step
 from touchdown_ros.core.pkbkr import coloured, rkhs_distance, whitened, whitening
@@ -274,29 +275,22 @@ def test_a_compilation_queued_first_ahead_is_compiled_before_those_queued_earlie
     before it (stage 2's), so the call that needs it first does not wait behind them."""
     from touchdown_ros.workflows.ahead import Ahead
 
-    order: list[str] = []
-
-    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and fun_name in ("jit(later)", "jit(sooner)"):
-            order.append(fun_name)
-
     def later(x):
         return x * 3.0
 
     def sooner(x):
         return x + 3.0
 
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
+    def run() -> None:
         with Ahead(io.StringIO()) as ahead:
             ahead.compile("later", jax.jit(later), np.zeros(7))
             ahead.compile_first("sooner", jax.jit(sooner), np.zeros(7))
             ahead.start()
             ahead.wait("sooner")
             ahead.wait("later")
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert order == ["jit(sooner)", "jit(later)"]
+
+    _, compiled = compilations({"jit(later)", "jit(sooner)"}, run)
+    assert [name for name, _ in compiled] == ["jit(sooner)", "jit(later)"]
 
 
 def test_a_compilation_waited_for_before_its_turn_is_compiled_at_once_beside_the_one_under_way():
@@ -318,30 +312,27 @@ def test_a_compilation_waited_for_before_its_turn_is_compiled_at_once_beside_the
             release.wait(20.0)
             finished.set()
 
-    threads: list[str] = []
-
-    def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and fun_name == "jit(needed)":
-            threads.append(threading.current_thread().name)
-
     def needed(x):
         return x - 5.0
 
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        with Ahead(io.StringIO()) as ahead:
-            ahead.compile("under way", Lengthy())
-            ahead.compile("needed", jax.jit(needed), np.zeros(5))
-            ahead.start()
-            ahead.wait("needed")
-            under_way_meanwhile = not finished.is_set()
+    def run() -> bool:
+        """Whether the lengthy compilation was still under way when the needed one was done."""
+        try:
+            with Ahead(io.StringIO()) as ahead:
+                ahead.compile("under way", Lengthy())
+                ahead.compile("needed", jax.jit(needed), np.zeros(5))
+                ahead.start()
+                ahead.wait("needed")
+                under_way_meanwhile = not finished.is_set()
+                release.set()
+                ahead.wait("under way")
+            return under_way_meanwhile
+        finally:
             release.set()
-            ahead.wait("under way")
-    finally:
-        release.set()
-        jax.monitoring.unregister_event_duration_listener(listener)
+
+    under_way_meanwhile, compiled = compilations({"jit(needed)"}, run)
     assert under_way_meanwhile
-    assert threads == [f"{THREAD_NAME}-needed_0"]
+    assert compiled == [("jit(needed)", f"{THREAD_NAME}-needed_0")]
 
 
 def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it():
