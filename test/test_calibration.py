@@ -470,17 +470,23 @@ MOUNT = [
 @pytest.mark.parametrize(
     "name, support", [("lossy_contact", "auto"), ("soft_bearing", "auto"), ("lossy_contact", "given")]
 )
-def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(name, support, tmp_path):
+def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(name, support, tmp_path, capsys):
     """`training.search: thorough` on 3 bags, the 4th estimated: lossy_contact's impacts reach the
     simulator's support (knee 36 kN), whose knee BIC missed (axial peak 14 % high); soft_bearing's
     (26 kN) stay below it, and its support must not win by the screening's unequal fits. Given from
-    the mount's data sheet, the support is held and carried as exact."""
+    the mount's data sheet, the support is held and carried as exact. `train` says how well a fitted
+    support is pinned, and how to give it where the bags do not pin it."""
     v = variant(name)
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=4, seed=0)
     rig = write_rig_yaml(v, tmp_path / "bags", overwrite=True)
     coeffs = tmp_path / "c.yaml"
     thorough = ["--config", str(rig), "-p", "training.search:=thorough", *(MOUNT if support == "given" else [])]
     assert main(["train", *map(str, bags[:3]), *thorough, "-o", str(coeffs), "--steps", "0"]) == 0
+    said = capsys.readouterr().out
+    calibrated = yaml.safe_load(coeffs.read_text())["training"]["calibration"]
+    log_sd = [calibrated["relative_standard_error"].get(n) for n in ("support_preload", "support_span")]
+    assert ("axial support: yields above" in said) == (None not in log_sd), said
+    assert ("training.axial_support:=given" in said) == (None not in log_sd and max(log_sd) >= 1.0), said
     est = tmp_path / "est"
     assert main(["estimate", str(bags[3]), *thorough, "--coeffs", str(coeffs), "-o", str(est), "--no-figures"]) == 0
     summary = json.loads((est / "summary.json").read_text())

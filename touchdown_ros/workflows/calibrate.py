@@ -104,6 +104,26 @@ class Calibration:
             **self.convergence.as_dict(),
         }
 
+    def support_note(self) -> str | None:
+        """What the bags tell of a fitted yielding axial support, and how to pin what they do not; None
+        when the support is rigid or given."""
+        law = self.config.law
+        if not law.yields or not all(n in self.relative_sd for n in SUPPORT_NAMES):
+            return None
+        preload, span = float(law.support_preload), float(law.support_span)
+        sd_preload, sd_span = (self.relative_sd[n] for n in SUPPORT_NAMES)
+        note = (
+            f"axial support: yields above {preload / 1e3:.3g} kN ({_uncertainty(sd_preload)}) and passes at most "
+            f"{(preload + span) / 1e3:.3g} kN (the span {span / 1e3:.3g} kN, {_uncertainty(sd_span)})"
+        )
+        if max(sd_preload, sd_span) < UNPINNED_LOG_SD:
+            return note
+        return (
+            f"{note}. These bags hardly tell how much force it passes above its knee, so the contact force's "
+            "band (/touchdown/contact_force_std) is wide there; the mount's data sheet pins it: "
+            "-p training.axial_support:=given -p contact.support_preload:=N -p contact.support_span:=N"
+        )
+
 
 def measured_sensor_noise(config: Config, data: TrainingData, stream=STDERR) -> np.ndarray:
     """(3,) sensor noise sd (m) per axis, pooled over the bags' levitated samples; the YAML's
@@ -409,6 +429,18 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         candidates=candidates,
         sensor_noise=sigma,
     )
+
+
+#: Standard error of ln(value) from which a support's preload or span counts as not pinned by the bags:
+#: one factor of e either way.
+UNPINNED_LOG_SD = 1.0
+
+
+def _uncertainty(log_sd: float) -> str:
+    """'+-12 %' for a small standard error of ln(value), else that it is not pinned."""
+    if log_sd < UNPINNED_LOG_SD:
+        return f"+-{100 * log_sd:.0f} %"
+    return f"not pinned: the standard error of its logarithm is {log_sd:.2g}"
 
 
 def support_log_covariance(names: Sequence[str], covariance: np.ndarray) -> tuple[tuple[float, float], ...]:
