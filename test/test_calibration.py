@@ -218,6 +218,33 @@ def test_a_yielding_support_is_chosen_only_when_the_aic_falls():
     assert bic(3.0, 2, n, "nll") - aic(3.0, 2, n, "nll") == pytest.approx(2 * np.log(n) - penalty)
 
 
+def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen_one():
+    """Refined candidates of another law within 2 of the chosen one's criterion are named, with the
+    setting that gives the bearing's law; a law further behind, or only screened, is not."""
+    from touchdown_ros.workflows.calibrate import Calibration
+    from touchdown_ros.workflows.optimise import Convergence
+
+    config = load_config(None)  # the reference rig: contact.law linear
+
+    def note(*candidates):
+        return Calibration(
+            config=config, effects=config.effects, guess=config.nominal, relative_sd={}, held_by_prior=(),
+            correlations=(), convergence=Convergence(True, "", 1, 1.0, 1.0, 0.0), candidates=candidates,
+            sensor_noise=np.zeros(3),
+        ).law_note()
+
+    linear = {"law": "linear", "contact_law": "linear", "criterion_above_best": 0.0, "refined_criterion_above_best": 0.0}
+    rollers = {"law": "hertz n=1.111", "contact_law": "hertz:1.111", "criterion_above_best": 3.4}
+    rollers_yielding = {**rollers, "law": "hertz n=1.111 + yielding support"}
+    balls = {"law": "hertz n=1.5", "contact_law": "hertz:1.5", "criterion_above_best": 0.9}  # screened, not refined
+    said = note(linear, {**rollers, "refined_criterion_above_best": 0.482},
+                {**rollers_yielding, "refined_criterion_above_best": 1.583}, balls)
+    assert "hardly tell linear from hertz:1.111 (0.48 behind)" in said, said
+    assert "-p 'training.contact_laws:=[hertz:1.111]'" in said and "hertz:1.5 (" not in said
+    assert note(linear, {**rollers, "refined_criterion_above_best": 2.5}, balls) is None
+    assert ContactLaw(1.5, 1.5).setting == "hertz:1.5" and ContactLaw(1.0, 0.0).setting == "linear"
+
+
 def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
     """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at
     the rig's: the restart moves c_R up by the factor that lowers the loss most and keeps c_Z,

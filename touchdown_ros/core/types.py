@@ -147,6 +147,11 @@ class ContactLaw(NamedTuple):
         return STATE_SIZE + self.spins_ring
 
     @property
+    def setting(self) -> str:
+        """'linear' or 'hertz:1.5': the law as `training.contact_laws` spells it."""
+        return "linear" if self.name == "linear" else f"hertz:{self.exponent:.4g}"
+
+    @property
     def label(self) -> str:
         """'linear', 'hertz n=1.5' or 'hertz n=1.5, support yields above 35.2 kN (at most 45.1 kN)'."""
         law = self.name if self.name == "linear" else f"{self.name} n={self.exponent:.4g}"

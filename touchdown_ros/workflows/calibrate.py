@@ -104,6 +104,24 @@ class Calibration:
             **self.convergence.as_dict(),
         }
 
+    def law_note(self) -> str | None:
+        """The contact laws whose refined fits the bags hardly tell from the chosen one (within
+        UNDECIDED_CRITERION of it), and how to give the bearing's; None when the data choose."""
+        chosen = self.config.law.setting
+        behind: dict[str, float] = {}
+        for c in self.candidates:
+            margin = c.get("refined_criterion_above_best")
+            if margin is not None and c["contact_law"] != chosen and margin < UNDECIDED_CRITERION:
+                behind[c["contact_law"]] = min(margin, behind.get(c["contact_law"], margin))
+        if not behind:
+            return None
+        rivals = ", ".join(f"{law} ({margin:.2g} behind)" for law, margin in sorted(behind.items(), key=lambda i: i[1]))
+        return (
+            f"contact law: these bags hardly tell {chosen} from {rivals} by the information criterion; "
+            "where the bearing's is known, give it (balls: hertz:1.5, rollers: hertz:1.111), "
+            f"e.g. -p 'training.contact_laws:=[{next(iter(sorted(behind, key=behind.get)))}]'"
+        )
+
     def support_note(self) -> str | None:
         """What the bags tell of a fitted yielding axial support, and how to pin what they do not; None
         when the support is rigid or given."""
@@ -393,7 +411,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         )
     finals = {c.name: c for c in refined}
     candidates = tuple(
-        {"law": c.name, "loss": c.convergence.final_loss, "criterion_above_best": round(c.score - screened[0].score, 3),
+        {"law": c.name, "contact_law": c.law.setting, "loss": c.convergence.final_loss,
+         "criterion_above_best": round(c.score - screened[0].score, 3),
          "steps": c.convergence.steps,
          **({"refined_loss": finals[c.name].convergence.final_loss,
              "refined_criterion_above_best": round(finals[c.name].score - best.score, 3)} if c.name in finals else {})}
@@ -430,6 +449,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         sensor_noise=sigma,
     )
 
+
+#: Information criterion (AIC or BIC) within which another contact law's refined fit is as good as the
+#: chosen one: differences below 2 are the usual "substantial support" for both (Burnham & Anderson).
+UNDECIDED_CRITERION = 2.0
 
 #: Standard error of ln(value) from which a support's preload or span counts as not pinned by the bags:
 #: one factor of e either way.
