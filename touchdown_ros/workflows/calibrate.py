@@ -115,11 +115,12 @@ class Calibration:
                 behind[c["contact_law"]] = min(margin, behind.get(c["contact_law"], margin))
         if not behind:
             return None
-        rivals = ", ".join(f"{law} ({margin:.2g} behind)" for law, margin in sorted(behind.items(), key=lambda i: i[1]))
+        closest = sorted(behind, key=behind.get)
+        rivals = ", ".join(f"{law} ({behind[law]:.2g} behind)" for law in closest)
         return (
             f"contact law: these bags hardly tell {chosen} from {rivals} by the information criterion; "
             "where the bearing's is known, give it (balls: hertz:1.5, rollers: hertz:1.111), "
-            f"e.g. -p 'training.contact_laws:=[{next(iter(sorted(behind, key=behind.get)))}]'"
+            f"e.g. -p 'training.contact_laws:=[{closest[0]}]'"
         )
 
     def support_note(self) -> str | None:
