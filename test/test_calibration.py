@@ -233,7 +233,9 @@ def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen
             sensor_noise=np.zeros(3),
         ).law_note()
 
-    linear = {"law": "linear", "contact_law": "linear", "criterion_above_best": 0.0, "refined_criterion_above_best": 0.0}
+    linear = {
+        "law": "linear", "contact_law": "linear", "criterion_above_best": 0.0, "refined_criterion_above_best": 0.0
+    }
     rollers = {"law": "hertz n=1.111", "contact_law": "hertz:1.111", "criterion_above_best": 3.4}
     rollers_yielding = {**rollers, "law": "hertz n=1.111 + yielding support"}
     balls = {"law": "hertz n=1.5", "contact_law": "hertz:1.5", "criterion_above_best": 0.9}  # screened, not refined
