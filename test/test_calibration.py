@@ -516,6 +516,8 @@ def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(
     log_sd = [calibrated["relative_standard_error"].get(n) for n in ("support_preload", "support_span")]
     assert ("axial support: yields above" in said) == (None not in log_sd), said
     assert ("training.axial_support:=given" in said) == (None not in log_sd and max(log_sd) >= 1.0), said
+    assert all(note in said for note in calibrated["notes"])  # the file keeps what train said
+    assert any(note.startswith("axial support:") for note in calibrated["notes"]) == (None not in log_sd)
     est = tmp_path / "est"
     assert main(["estimate", str(bags[3]), *thorough, "--coeffs", str(coeffs), "-o", str(est), "--no-figures"]) == 0
     summary = json.loads((est / "summary.json").read_text())

@@ -89,7 +89,7 @@ class Calibration:
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
 
     def summary(self) -> dict[str, Any]:
-        """Plain data for the coefficient file."""
+        """Plain data for the coefficient file, with the notes `train` prints (`law_note`, `support_note`)."""
         nominal = self.config.nominal
         return {
             "law": self.config.law.label,
@@ -101,6 +101,7 @@ class Calibration:
             "strongest_correlations": [[a, b, round(r, 4)] for a, b, r in self.correlations],
             "sensor_noise_m": [float(v) for v in self.sensor_noise],
             "candidates": list(self.candidates),
+            "notes": [note for note in (self.law_note(), self.support_note()) if note is not None],
             **self.convergence.as_dict(),
         }
 
