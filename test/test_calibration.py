@@ -521,6 +521,9 @@ def test_thorough_search_finds_a_support_the_impacts_reach_and_none_they_do_not(
     est = tmp_path / "est"
     assert main(["estimate", str(bags[3]), *thorough, "--coeffs", str(coeffs), "-o", str(est), "--no-figures"]) == 0
     summary = json.loads((est / "summary.json").read_text())
+    # estimate's summary repeats what the calibration said the bags left open
+    assert summary["calibration_notes"] == calibrated["notes"]
+    assert all(f"- Calibration: {note}" in (est / "summary.md").read_text() for note in calibrated["notes"])
     truth = (next(iter(summary["bags"].values())) if "bags" in summary else summary[0])["truth"]
     contact = yaml.safe_load(coeffs.read_text())["contact"]
     preload = contact["support_preload"]

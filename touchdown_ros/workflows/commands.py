@@ -127,6 +127,8 @@ def estimate_bags(
             out,
             {
                 "coefficients": str(coefficients) if coefficients else "constant model",
+                "calibration_notes": list((loaded.training.extra.get("calibration") or {}).get("notes", []))
+                if loaded else [],
                 "estimate": answer,
                 "process_noise": (
                     f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)"

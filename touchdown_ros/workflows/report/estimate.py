@@ -78,9 +78,11 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
     return written_files
 
 
-def summary_table(results: Sequence[BagEstimate], process_noise: str | None = None) -> str:
-    """Markdown: which estimate the figures are of (and with which process noise), then a table of the
-    per-bag summaries."""
+def summary_table(
+    results: Sequence[BagEstimate], process_noise: str | None = None, notes: Sequence[str] = ()
+) -> str:
+    """Markdown: which estimate the figures are of (and with which process noise), what the calibration
+    said the bags left open (`notes`, the coefficient file's), then a table of the per-bag summaries."""
     answers = sorted({result.answer for result in results})
     which = " and ".join(f"{ANSWER_LABELS[a]} ({a})" for a in answers)
     intro = (
@@ -89,6 +91,8 @@ def summary_table(results: Sequence[BagEstimate], process_noise: str | None = No
         "contact force, linearised through the estimate's covariance."
         + (f" Process noise: {process_noise}." if process_noise else "")
         + "\n\n"
+        + "".join(f"- Calibration: {note}\n" for note in notes)
+        + ("\n" if notes else "")
     )
     header = (
         "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
@@ -139,6 +143,9 @@ def input_text(summary: dict[str, Any]) -> str:
 def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, Any] | None = None) -> None:
     """summary.json (all numbers) and summary.md (the table) in out."""
     out.mkdir(parents=True, exist_ok=True)
-    document = {"bags": {str(r.path): r.summary for r in results}, **(extra or {})}
+    extra = extra or {}
+    document = {"bags": {str(r.path): r.summary for r in results}, **extra}
     (out / "summary.json").write_text(json.dumps(document, indent=2))
-    (out / "summary.md").write_text(summary_table(results, (extra or {}).get("process_noise")))
+    (out / "summary.md").write_text(
+        summary_table(results, extra.get("process_noise"), extra.get("calibration_notes", ()))
+    )
