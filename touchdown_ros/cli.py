@@ -130,9 +130,8 @@ def _trained(outcome, bags: int, out: Path) -> None:
             )
             + (f"; held by the prior: {', '.join(calibration.held_by_prior)}" if calibration.held_by_prior else "")
         )
-        for note in (calibration.law_note(), calibration.support_note()):
-            if note is not None:
-                print(note)
+        for note in calibration.notes():
+            print(note)
     converged = pkbkr.convergence is not None and pkbkr.convergence.converged
     kept = pkbkr.convergence.kept_step if pkbkr.convergence is not None else None
     kept_note = ""

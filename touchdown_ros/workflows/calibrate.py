@@ -89,7 +89,7 @@ class Calibration:
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
 
     def summary(self) -> dict[str, Any]:
-        """Plain data for the coefficient file, with the notes `train` prints (`law_note`, `support_note`)."""
+        """Plain data for the coefficient file, with the notes `train` prints (`notes`)."""
         nominal = self.config.nominal
         return {
             "law": self.config.law.label,
@@ -101,9 +101,14 @@ class Calibration:
             "strongest_correlations": [[a, b, round(r, 4)] for a, b, r in self.correlations],
             "sensor_noise_m": [float(v) for v in self.sensor_noise],
             "candidates": list(self.candidates),
-            "notes": [note for note in (self.law_note(), self.support_note()) if note is not None],
+            "notes": self.notes(),
             **self.convergence.as_dict(),
         }
+
+    def notes(self) -> list[str]:
+        """What the bags left open, in words (`law_note`, `support_note`): `train` prints them and the
+        coefficient file keeps them."""
+        return [note for note in (self.law_note(), self.support_note()) if note is not None]
 
     def law_note(self) -> str | None:
         """The contact laws whose refined fits the bags hardly tell from the chosen one (within
