@@ -190,9 +190,17 @@ def test_hertz_force_and_guess_conversion():
     assert float(normal_force(linear, 5e8, 3.5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(
         5e8 * d + 3.5e4 * rate
     )
+    viscous = ContactLaw.of("kelvin_voigt", 1.5)  # a Hertzian spring beside a viscous damper
+    assert float(normal_force(viscous, 3e11, 5e4, jnp.asarray(d), jnp.asarray(rate))) == pytest.approx(
+        3e11 * d**1.5 + 5e4 * rate, rel=1e-12
+    )
+    assert float(normal_force(viscous, 3e11, 5e4, jnp.asarray(d), jnp.asarray(-1.0))) == 0.0  # never pulls
+    assert float(normal_force(viscous, 3e11, 5e4, jnp.asarray(1e-9), jnp.asarray(rate))) == pytest.approx(
+        5e4 * rate, rel=1e-3
+    )  # its damping acts from first touch, where Hunt-Crossley's vanishes
     # carried to another law, the guess gives the same spring and damping force at the reference deformation
     d_ref = 20e-6
-    for target in (law, ContactLaw.of("hertz", 10 / 9)):
+    for target in (law, ContactLaw.of("hertz", 10 / 9), viscous):
         converted = convert_guess(GUESS, linear, target, d_ref)
         for k, c in ((0, 1), (3, 4)):
             spring = float(normal_force(target, converted[k], 0.0, jnp.asarray(d_ref), jnp.asarray(0.0)))

@@ -84,6 +84,13 @@ def saved_with_law(path, law):
     return path
 
 
+def test_file_carries_a_kelvin_voigt_law_and_its_units(tmp_path):
+    path = saved_with_law(tmp_path / "c.yaml", ContactLaw.of("kelvin_voigt", 1.5))
+    contact = yaml.safe_load(path.read_text())["contact"]
+    assert (contact["law"], contact["exponent"]) == ("kelvin_voigt", 1.5)
+    assert contact["units"].startswith("F = k d^1.5 + c d_dot") and "c_R, c_Z N s/m;" in contact["units"]
+
+
 def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
     saved_with_law(tmp_path / "c.yaml", ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4))
     rigid = save_coefficients(tmp_path / "rigid.yaml", random_coeffs(), CONFIG, TrainingRecord())

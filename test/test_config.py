@@ -88,14 +88,21 @@ def test_contact_law_and_training_settings(tmp_path):
     hertz = load_config(overrides={"contact.law": "hertz", "contact.exponent": 1.111})
     assert (hertz.law.name, hertz.law.exponent, hertz.model().law) == ("hertz", 1.111, hertz.law)
     assert load_config(overrides={"contact.law": "hertz"}).law.exponent == 1.5
+    viscous = load_config(overrides={"contact.law": "kelvin_voigt"}).law
+    assert (viscous.name, viscous.exponent, viscous.setting, viscous.label) == (
+        "kelvin_voigt", 1.5, "kelvin_voigt:1.5", "kelvin_voigt n=1.5"
+    )
+    with pytest.raises(ConfigError, match=r"kelvin_voigt law's exponent must be in \(1, 3\]"):
+        load_config(overrides={"contact.law": "kelvin_voigt", "contact.exponent": 1.0})
     with pytest.raises(ConfigError, match="contact.law"):
         load_config(overrides={"contact.law": "spring"})
     with pytest.raises(ConfigError, match="linear contact law has exponent 1"):
         load_config(overrides={"contact.exponent": 1.5})
     settings = load_config(
-        overrides={"training.contact_laws": ["hertz:1.5", "linear"], "training.loss": "one_step"}
+        overrides={"training.contact_laws": ["hertz:1.5", "linear", "kelvin_voigt:1.2"], "training.loss": "one_step"}
     ).training
-    assert [law.label for law in settings.contact_laws] == ["hertz n=1.5", "linear"] and settings.loss == "one_step"
+    assert [law.setting for law in settings.contact_laws] == ["hertz:1.5", "linear", "kelvin_voigt:1.2"]
+    assert settings.loss == "one_step"
     assert load_config(overrides={"training.contact_laws": []}).training.contact_laws == (load_config().law,)
     with pytest.raises(ConfigError, match="training.contact_laws"):
         load_config(overrides={"training.contact_laws": ["hertz:x"]})

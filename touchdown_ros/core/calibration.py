@@ -376,7 +376,7 @@ def stage1_flags(
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
     """A guess of one contact law carried to another: the same spring force and the same damping
     force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the
-    power of d in the damping force (0 linear, n hertz)."""
+    power of d in the damping force (0 linear and kelvin_voigt, n hertz)."""
     d = reference_deformation
     stiffness = d ** (float(source.stiffness_exponent) - float(target.stiffness_exponent))
     damping = d ** (float(source.damping_exponent) - float(target.damping_exponent))

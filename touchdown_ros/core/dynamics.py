@@ -35,7 +35,8 @@ def polar(x: Array, y: Array) -> tuple[Array, Array, Array]:
 
 def normal_force(law: ContactLaw, k: Array, c: Array, deformation: Array, rate: Array) -> Array:
     """Normal contact force (N) at deformation d > 0 (m) and its rate (m/s): k d^n + c d^m d_dot
-    (linear, eq. 6a / 8c: n = 1, m = 0; hertz: n = m, floored at 0); 0 out of contact."""
+    (linear, eq. 6a / 8c: n = 1, m = 0; hertz: n = m; kelvin_voigt: m = 0; both floored at 0); 0 out of
+    contact."""
     in_contact = deformation > 0.0
     d = jnp.where(in_contact, deformation, 1.0)
     force = k * d**law.stiffness_exponent + c * d**law.damping_exponent * rate

@@ -58,6 +58,8 @@ class ContactLaw(NamedTuple):
     linear (the paper's eq. 6a, 8c): n = 1, m = 0, not floored; k in N/m, c in N s/m.
     hertz: n = m (1.5 for balls, 10/9 for rollers), floored (Hertz with Hunt-Crossley
     damping, F = d^n (k + c d_dot), never pulling); k in N/m^n, c in N s/m^(n+1).
+    kelvin_voigt: n > 1, m = 0, floored (a Hertzian spring beside a viscous damper, F = k d^n +
+    c d_dot, never pulling: damping that does not vanish at first touch); k in N/m^n, c in N s/m.
     The face force passes the bearing's axial support (`dynamics.yielding_support`): rigid by
     default, or preloaded disc springs under the housing that yield above the preload P and
     pass at most P + S (degressive). The exponents and the support are traced numbers, so one
@@ -86,21 +88,26 @@ class ContactLaw(NamedTuple):
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":
-        """The law called `name` ("linear" or "hertz", exponent default 1.5); ValueError if unknown."""
+        """The law called `name` ("linear", "hertz" or "kelvin_voigt", exponent default 1.5); ValueError
+        if unknown."""
         if name == "linear":
             if exponent not in (None, 1.0):
                 raise ValueError("the linear contact law has exponent 1")
             return ContactLaw()
-        if name != "hertz":
+        if name not in CONTACT_LAWS:
             raise ValueError(f"contact law must be one of {', '.join(CONTACT_LAWS)}, got {name!r}")
         n = 1.5 if exponent is None else float(exponent)
+        if name == "kelvin_voigt" and not 1.0 < n <= 3.0:  # at n = 1 it is the linear law, floored
+            raise ValueError(f"the kelvin_voigt law's exponent must be in (1, 3], got {exponent!r}")
         if not 1.0 <= n <= 3.0:
             raise ValueError(f"contact exponent must be in [1, 3], got {exponent!r}")
-        return ContactLaw(n, n, 1.0)
+        return ContactLaw(n, n if name == "hertz" else 0.0, 1.0)
 
     @property
     def name(self) -> str:
-        return "linear" if float(self.damping_exponent) == 0.0 else "hertz"
+        if float(self.damping_exponent) != 0.0:
+            return "hertz"
+        return "linear" if float(self.stiffness_exponent) == 1.0 else "kelvin_voigt"
 
     @property
     def exponent(self) -> float:
@@ -148,8 +155,8 @@ class ContactLaw(NamedTuple):
 
     @property
     def setting(self) -> str:
-        """'linear' or 'hertz:1.5': the law as `training.contact_laws` spells it."""
-        return "linear" if self.name == "linear" else f"hertz:{self.exponent:.4g}"
+        """'linear', 'hertz:1.5' or 'kelvin_voigt:1.5': the law as `training.contact_laws` spells it."""
+        return "linear" if self.name == "linear" else f"{self.name}:{self.exponent:.4g}"
 
     @property
     def label(self) -> str:
@@ -174,7 +181,7 @@ def _unflatten_law(friction_model: int, children: tuple) -> ContactLaw:
 
 jax.tree_util.register_pytree_node(ContactLaw, _flatten_law, _unflatten_law)
 
-CONTACT_LAWS = ("linear", "hertz")
+CONTACT_LAWS = ("linear", "hertz", "kelvin_voigt")
 #: Friction models: the paper's (ring at rest), Coulomb friction against a ring spinning with the rotor,
 #: and against a ring spun up by the friction (its speed a state).
 FRICTION_MODELS = ("paper", "co_rotating_ring", "spinning_ring")

@@ -266,6 +266,8 @@ def _contact_units(config: Config) -> str:
     if config.law.name == "linear":
         return "F = k d + c d_dot: k_R, k_Z N/m; c_R, c_Z N s/m; mu, k_ZR 1"
     n = f"{config.law.exponent:.4g}"
+    if config.law.name == "kelvin_voigt":
+        return f"F = k d^{n} + c d_dot: k_R, k_Z N/m^{n}; c_R, c_Z N s/m; mu, k_ZR 1"
     return f"F = d^{n} (k + c d_dot): k_R, k_Z N/m^{n}; c_R, c_Z N s/m^({n}+1); mu, k_ZR 1"
 
 

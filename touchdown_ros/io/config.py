@@ -63,7 +63,8 @@ class TrainingSettings:
     """`training.*`: how `touchdown train` identifies a rig (stage 1) and fits PKBKR (stage 2)."""
 
     loss: str = "nll"  # nll: innovation negative log-likelihood; one_step: eq. 18 as published
-    # stage-1 candidate contact laws ("linear", "hertz:<n>"); the data choose; empty: contact.law only
+    # stage-1 candidate contact laws ("linear", "hertz:<n>", "kelvin_voigt:<n>"); the data choose;
+    # empty: contact.law only
     contact_laws: tuple[ContactLaw, ...] = ()
     prior_width: float = 1.6  # sd of ln f0 around the guess (ln 5: a guess 5x off is one sd)
     reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
@@ -340,10 +341,13 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
 
 
 def parse_contact_law(text: str) -> ContactLaw:
-    """'linear', 'hertz' (n = 1.5) or 'hertz:<n>' -> ContactLaw; ValueError names what is wrong."""
+    """'linear', 'hertz' or 'kelvin_voigt' (n = 1.5), or with ':<n>' -> ContactLaw; ValueError names what is
+    wrong."""
     name, _, exponent = str(text).partition(":")
     if name not in CONTACT_LAWS:
-        raise ValueError(f"contact law {text!r}: use one of linear, hertz, hertz:<exponent>")
+        raise ValueError(
+            f"contact law {text!r}: use one of linear, hertz, hertz:<exponent>, kelvin_voigt, kelvin_voigt:<exponent>"
+        )
     if name == "linear" and exponent:
         raise ValueError(f"contact law {text!r}: the linear law takes no exponent")
     try:
@@ -354,7 +358,7 @@ def parse_contact_law(text: str) -> ContactLaw:
 
 
 def _contact_law(read: ParameterReader) -> ContactLaw:
-    """contact.law (linear | hertz), contact.exponent (hertz only, default 1.5), the axial
+    """contact.law (linear | hertz | kelvin_voigt), contact.exponent (not linear; default 1.5), the axial
     support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N), and the
     friction: contact.friction (paper | co_rotating_ring | spinning_ring), contact.slip_velocity (m/s)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
