@@ -255,6 +255,31 @@ def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen
     assert ContactLaw(1.5, 1.5).setting == "hertz:1.5" and ContactLaw(1.0, 0.0).setting == "linear"
 
 
+def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():
+    """mu and k_ZR both below LOW_FRICTION with the paper's friction: a note among `notes()` that names them
+    and the ring's setting; not when either is a real friction, nor with a ring's friction model."""
+    from touchdown_ros.workflows.calibrate import LOW_FRICTION, Calibration
+    from touchdown_ros.workflows.optimise import Convergence
+
+    def calibration(mu, k_ZR, friction="paper"):
+        config = load_config(None)
+        config = config.calibrated(
+            config.nominal._replace(mu=mu, k_ZR=k_ZR), config.law.with_friction(friction), config.kernel, config.noise
+        )
+        return Calibration(
+            config=config, effects=config.effects, guess=config.nominal, relative_sd={}, held_by_prior=(),
+            correlations=(), convergence=Convergence(True, "", 1, 1.0, 1.0, 0.0), candidates=(),
+            sensor_noise=np.zeros(3),
+        )
+
+    said = calibration(0.0004, 0.0012).friction_note()
+    assert said.startswith("friction: mu 0.0004 and k_ZR 0.0012") and "-p contact.friction:=spinning_ring" in said
+    assert calibration(0.0004, 0.0012).notes() == [said]
+    for quiet in (calibration(2 * LOW_FRICTION, 0.001), calibration(0.001, LOW_FRICTION),
+                  calibration(0.0004, 0.0012, "co_rotating_ring")):
+        assert quiet.friction_note() is None and quiet.notes() == []
+
+
 def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
     """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at
     the rig's: the restart moves c_R up by the factor that lowers the loss most and keeps c_Z,

@@ -106,9 +106,10 @@ class Calibration:
         }
 
     def notes(self) -> list[str]:
-        """What the bags left open, in words (`law_note`, `support_note`): `train` prints them and the
-        coefficient file keeps them."""
-        return [note for note in (self.law_note(), self.support_note()) if note is not None]
+        """What the bags left open, in words (`law_note`, `support_note`, `friction_note`): `train` prints
+        them and the coefficient file keeps them."""
+        notes = (self.law_note(), self.support_note(), self.friction_note())
+        return [note for note in notes if note is not None]
 
     def law_note(self) -> str | None:
         """The contact laws whose refined fits the bags hardly tell from the chosen one (within
@@ -127,6 +128,21 @@ class Calibration:
             f"contact law: these bags hardly tell {chosen} from {rivals} by the information criterion; "
             "where the bearing's is known, give it (balls: hertz:1.5, rollers: hertz:1.111), "
             f"e.g. -p 'training.contact_laws:=[{closest[0]}]'"
+        )
+
+    def friction_note(self) -> str | None:
+        """Where the paper's friction (the inner ring at rest) came out at hardly any friction, that a freely
+        turning inner ring is the likelier reading and the setting that models it; None otherwise."""
+        nominal = self.config.nominal
+        if self.config.law.friction != "paper" or max(float(nominal.mu), float(nominal.k_ZR)) >= LOW_FRICTION:
+            return None
+        return (
+            f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, far below a dry or "
+            f"boundary-lubricated contact's (from {LOW_FRICTION:g} up): the paper's friction acts against the rotor's "
+            "spin as on an inner ring at rest, and these bags do not show that force. A freely turning inner ring, "
+            "spun up by the first contacts, exerts little of it, and the contact damping may then come out high, making "
+            "up for the friction the model lacks; where the ring turns freely, -p contact.friction:=spinning_ring "
+            "models its speed (training takes about twice as long)"
         )
 
     def support_note(self) -> str | None:
@@ -460,6 +476,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
 #: Information criterion (AIC or BIC) within which another contact law's refined fit is as good as the
 #: chosen one: differences below 2 are the usual "substantial support" for both (Burnham & Anderson).
 UNDECIDED_CRITERION = 2.0
+
+#: Friction coefficient (mu, k_ZR) below which the paper's friction reads as hardly any: boundary-lubricated
+#: sliding starts about there, dry steel or ceramic on steel is 0.1-0.3.
+LOW_FRICTION = 0.05
 
 #: Standard error of ln(value) from which a support's preload or span counts as not pinned by the bags:
 #: one factor of e either way.
