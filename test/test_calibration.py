@@ -226,20 +226,25 @@ def test_a_yielding_support_is_chosen_only_when_the_aic_falls():
     assert bic(3.0, 2, n, "nll") - aic(3.0, 2, n, "nll") == pytest.approx(2 * np.log(n) - penalty)
 
 
-def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen_one():
-    """Refined candidates of another law within 2 of the chosen one's criterion are named, with the
-    setting that gives the bearing's law; a law further behind, or only screened, is not."""
+def stage1_result(config, candidates=()):
+    """A `Calibration` of `config` (its law and constants as stage 1's result) with these screened candidates."""
     from touchdown_ros.workflows.calibrate import Calibration
     from touchdown_ros.workflows.optimise import Convergence
 
+    return Calibration(
+        config=config, effects=config.effects, guess=config.nominal, relative_sd={}, held_by_prior=(),
+        correlations=(), convergence=Convergence(True, "", 1, 1.0, 1.0, 0.0), candidates=tuple(candidates),
+        sensor_noise=np.zeros(3),
+    )
+
+
+def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen_one():
+    """Refined candidates of another law within 2 of the chosen one's criterion are named, with the
+    setting that gives the bearing's law; a law further behind, or only screened, is not."""
     config = load_config(None)  # the reference rig: contact.law linear
 
     def note(*candidates):
-        return Calibration(
-            config=config, effects=config.effects, guess=config.nominal, relative_sd={}, held_by_prior=(),
-            correlations=(), convergence=Convergence(True, "", 1, 1.0, 1.0, 0.0), candidates=candidates,
-            sensor_noise=np.zeros(3),
-        ).law_note()
+        return stage1_result(config, candidates).law_note()
 
     linear = {
         "law": "linear", "contact_law": "linear", "criterion_above_best": 0.0, "refined_criterion_above_best": 0.0
@@ -258,19 +263,13 @@ def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen
 def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():
     """mu and k_ZR both below LOW_FRICTION with the paper's friction: a note among `notes()` that names them
     and the ring's setting; not when either is a real friction, nor with a ring's friction model."""
-    from touchdown_ros.workflows.calibrate import LOW_FRICTION, Calibration
-    from touchdown_ros.workflows.optimise import Convergence
+    from touchdown_ros.workflows.calibrate import LOW_FRICTION
 
     def calibration(mu, k_ZR, friction="paper"):
         config = load_config(None)
-        config = config.calibrated(
+        return stage1_result(config.calibrated(
             config.nominal._replace(mu=mu, k_ZR=k_ZR), config.law.with_friction(friction), config.kernel, config.noise
-        )
-        return Calibration(
-            config=config, effects=config.effects, guess=config.nominal, relative_sd={}, held_by_prior=(),
-            correlations=(), convergence=Convergence(True, "", 1, 1.0, 1.0, 0.0), candidates=(),
-            sensor_noise=np.zeros(3),
-        )
+        ))
 
     said = calibration(0.0004, 0.0012).friction_note()
     assert said.startswith("friction: mu 0.0004 and k_ZR 0.0012") and "-p contact.friction:=spinning_ring" in said

@@ -140,9 +140,9 @@ class Calibration:
             f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, far below a dry or "
             f"boundary-lubricated contact's (from {LOW_FRICTION:g} up): the paper's friction acts against the rotor's "
             "spin as on an inner ring at rest, and these bags do not show that force. A freely turning inner ring, "
-            "spun up by the first contacts, exerts little of it, and the contact damping may then come out high, making "
-            "up for the friction the model lacks; where the ring turns freely, -p contact.friction:=spinning_ring "
-            "models its speed (training takes about twice as long)"
+            "spun up by the first contacts, exerts little of it, and the contact damping may then come out high, "
+            "making up for the friction the model lacks; where the ring turns freely, "
+            "-p contact.friction:=spinning_ring models its speed (training takes about twice as long)"
         )
 
     def support_note(self) -> str | None:
