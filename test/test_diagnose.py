@@ -118,6 +118,11 @@ def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, 
     document = _diagnosis(out)
     before, after = document["models"]
     assert (before["label"], after["label"]) == ("before", "after")
+    # each model's calibration notes (stage 1's, from its file) qualify its diagnosis, in the json and the report
+    for model, path in ((before, calibrated), (after, coeffs)):
+        said = [f"Calibration: {note}" for note in load_coefficients(path, load_config()).calibration_notes]
+        assert said and model["notes"][: len(said)] == said, (model["notes"], said)
+        assert all(f"  - {note}" in (out / "diagnosis.md").read_text() for note in model["notes"])
 
     # before (the paper's constant model, calibrated): the load is what is missing, and how large it is
     verdict = before["verdict"]
@@ -351,6 +356,20 @@ def test_a_user_effect_by_dotted_path_sizes_the_unmodelled_thrust_and_the_axial_
     )
     ratio = _diagnosis(out)["comparison"]
     assert ratio["contact_force_rmse_per_axis"][2] < 0.9, ratio
+
+
+def test_a_cross_coupling_named_under_the_papers_friction_is_qualified():
+    """The verdict's notes: the file's calibration notes, then, only where the paper's friction meets a
+    verdict for cross_coupled_stiffness, that it may stand in for a turning ring's friction."""
+    from touchdown_ros.workflows.diagnose import verdict_notes
+
+    named = {"explained": True, "best": "cross_coupled_stiffness"}
+    notes = verdict_notes(["friction: mu 0.0004 ..."], "paper", named)
+    assert notes[0] == "Calibration: friction: mu 0.0004 ..." and len(notes) == 2
+    assert notes[1].startswith("cross_coupled_stiffness also stands in") and "spinning_ring" in notes[1]
+    assert verdict_notes([], "spinning_ring", named) == []
+    assert verdict_notes([], "paper", {"explained": True, "best": "radial_load"}) == []
+    assert verdict_notes([], "paper", {"explained": False, "best": "cross_coupled_stiffness"}) == []
 
 
 def test_residual_tests_see_white_and_coloured_sequences():

@@ -78,6 +78,12 @@ class CoefficientFile:
         """The estimator's model with the file's calibration, coefficients and effects."""
         return self.config(config).model(self.coeffs, self.effects)
 
+    @property
+    def calibration_notes(self) -> list[str]:
+        """What stage 1 said the training bags left open (`training.calibration.notes`; none in a file
+        written before them)."""
+        return list((self.training.extra.get("calibration") or {}).get("notes", []))
+
 
 def sha256_of(path: str | Path) -> str:
     """SHA-256 of a file, or of every file of a directory in name order (a rosbag2 bag)."""

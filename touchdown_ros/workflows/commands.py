@@ -127,7 +127,7 @@ def estimate_bags(
             out,
             {
                 "coefficients": str(coefficients) if coefficients else "constant model",
-                "calibration_notes": _calibration_notes(loaded),
+                "calibration_notes": loaded.calibration_notes if loaded else [],
                 "estimate": answer,
                 "process_noise": (
                     f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)"
@@ -137,14 +137,6 @@ def estimate_bags(
             },
         )
     return results
-
-
-def _calibration_notes(loaded) -> list[str]:
-    """What stage 1 said the training bags left open: the coefficient file's `training.calibration.notes`
-    (none for the constant model, or a file written before them)."""
-    if loaded is None:
-        return []
-    return list((loaded.training.extra.get("calibration") or {}).get("notes", []))
 
 
 def train_bags(

@@ -74,6 +74,22 @@ class Diagnosis:
     verdict: dict[str, Any]
     signature: dict[str, Any]
     tests: dict[str, Any]
+    notes: list[str] = field(default_factory=list)  # what qualifies the verdict (`verdict_notes`)
+
+
+def verdict_notes(calibration_notes: Sequence[str], friction: str, verdict: dict[str, Any]) -> list[str]:
+    """What qualifies a diagnosis: the coefficient file's calibration notes, and, where the paper's friction
+    (an inner ring at rest) meets a verdict for cross_coupled_stiffness, that this candidate also stands in
+    for the forward whirl drive of friction against a turning inner ring, which that friction lacks."""
+    notes = [f"Calibration: {note}" for note in calibration_notes]
+    if friction == "paper" and verdict.get("explained") and verdict.get("best") == "cross_coupled_stiffness":
+        notes.append(
+            "cross_coupled_stiffness also stands in for the forward whirl drive of friction against an inner ring "
+            "the rotor has spun up, which the paper's friction (a ring at rest) lacks; where the ring turns freely, "
+            "diagnose a model trained with contact.friction: spinning_ring before reading it as a seal's or fluid's "
+            "cross-coupling (docs/workbench.md)"
+        )
+    return notes
 
 
 # ---------------------------------------------------------------- compiled pieces (cached per model)
@@ -169,9 +185,11 @@ def diagnose(
 ) -> Diagnosis:
     """Estimate every bag with one model and compute all the diagnostics."""
     coeffs = effects = None
+    calibration_notes: list[str] = []
     if coefficient_file is not None:
         loaded = load_coefficients(coefficient_file, config)
         coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
+        calibration_notes = loaded.calibration_notes
     estimator = estimator_for(config, coeffs, effects)
     compiled = _compiled(config, settings)
     results = []
@@ -246,6 +264,7 @@ def diagnose(
         verdict=verdict,
         signature=missing_signature,
         tests=tests,
+        notes=verdict_notes(calibration_notes, config.law.friction, verdict),
     )
 
 

@@ -48,6 +48,7 @@ def _json_ready(diagnosis: Diagnosis, settings: Settings) -> dict[str, Any]:
         "residual_tests": diagnosis.tests,
         "verdict": diagnosis.verdict,
         "signature": diagnosis.signature,
+        "notes": diagnosis.notes,
         "bags": {
             b.path.name: {"path": str(b.path), "conditions": b.conditions, **b.metrics} for b in diagnosis.bags
         },
@@ -107,7 +108,9 @@ def markdown(document: dict[str, Any]) -> str:
         "# touchdown diagnose\n",
         f"k-step prediction: {s['k_step_samples']} samples ({s['k_step_seconds'] * 1e3:.1f} ms) ahead, no update.\n",
     ]
-    lines += [f"- **{m['label']}**: {m['coefficients']}; effects {m['effects'] or 'none'}" for m in models]
+    for m in models:
+        lines.append(f"- **{m['label']}**: {m['coefficients']}; effects {m['effects'] or 'none'}")
+        lines += [f"  - {note}" for note in m["notes"]]
     lines.append("")
 
     def row(name: str, values: list[str]) -> str:
