@@ -298,7 +298,9 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
     zeros = Coefficients.zeros(CONFIG.kernel)
     coeffs = Coefficients(0.2 * rng.standard_normal(zeros.alpha_R.shape),
                           0.2 * rng.standard_normal(zeros.alpha_Z.shape))
-    coefficient_file = save_coefficients(tmp_path / "coefficients.yaml", coeffs, CONFIG, TrainingRecord())
+    notes = ["axial support: yields above 36 kN (+-3 %) ...", "friction: mu 0.0004 and k_ZR 0.0012, ..."]
+    coefficient_file = save_coefficients(tmp_path / "coefficients.yaml", coeffs, CONFIG,
+                                         TrainingRecord(extra={"calibration": {"notes": notes}}))
     expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, coeffs))
     n_samples = int(expected.estimate.onset_index + len(expected.estimate.stamps_ns))
     recorded, recorded_batched = tmp_path / "live", tmp_path / "live_batched"
@@ -308,6 +310,7 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         peer.wait_ready(node)
         assert peer.latest[MODEL]["level"] == OK
         assert str(coefficient_file) in peer.latest[MODEL]["message"]
+        assert peer.value(MODEL, "calibration_notes") == " | ".join(notes)  # what training left open
         replay = subprocess.run(
             [sys.executable, "-m", "touchdown_ros.ros.replay", str(bag), "--record", str(recorded), "--timeout", "30"],
             env=ros_env(d), capture_output=True, text=True, timeout=240,

@@ -80,6 +80,8 @@ class EstimatorNode(Node):
         node = self.config.node
         logger = self.get_logger()
         self.config, model, self.model_info = load_node_model(self.config, logger.error, logger.warning)
+        if notes := self.model_info.values.get("calibration_notes"):
+            logger.info(f"calibration notes of the coefficient file: {notes}")
         settings = self.config.stream_settings()
         self.estimator = StreamingEstimator(model, self.config.noise, settings)
         # Before warm_up and the worker start: threads created later inherit the policy.

@@ -46,10 +46,12 @@ def _coefficients(config: Config, path: str, log_error: Callable[[str], None]) -
             ERROR, f"coefficient file refused, running the constant model: {error}",
             {"model": "constant (fallback)", "coefficients": path, "error": str(error), **identity}))
     config = loaded.config(config)
+    # what the training bags left open (a support's cap, the friction): alarm and logging nodes see it here
+    notes = {"calibration_notes": " | ".join(loaded.calibration_notes)} if loaded.calibration_notes else {}
     info = ModelInfo(
         OK,
         f"PKBKR coefficients from {path}",
         {"model": "pkbkr", "coefficients": path, "coefficients_sha256": sha256_of(path)[:16],
-         "trained_on_bags": len(loaded.training.bags), "contact_law": config.law.label, **identity},
+         "trained_on_bags": len(loaded.training.bags), "contact_law": config.law.label, **notes, **identity},
     )
     return NodeModel(config, loaded.model(config), info)
