@@ -146,24 +146,47 @@ class Calibration:
         )
 
     def support_note(self) -> str | None:
-        """What the bags tell of a fitted yielding axial support, and how to pin what they do not; None
-        when the support is rigid or given."""
+        """What the bags tell of a fitted yielding axial support, and how to pin what they do not; where the
+        chosen law's fit with the other support (rigid or yielding) comes within UNDECIDED_CRITERION, that
+        the bags hardly tell the two apart; None when the support is given, or rigid and so chosen."""
         law = self.config.law
-        if not law.yields or not all(n in self.relative_sd for n in SUPPORT_NAMES):
+        rival = self._support_rival()
+        if rival is None and (not law.yields or not all(n in self.relative_sd for n in SUPPORT_NAMES)):
             return None
+        if not law.yields:
+            preload, span = (rival[n] for n in SUPPORT_NAMES)
+            return (
+                f"axial support: these bags hardly tell a rigid support from one yielding above {preload / 1e3:.3g} kN "
+                f"and passing at most {(preload + span) / 1e3:.3g} kN ({rival['refined_criterion_above_best']:.2g} "
+                f"behind by the information criterion); a rigid one is assumed. {GIVE_THE_MOUNT}"
+            )
         preload, span = float(law.support_preload), float(law.support_span)
         sd_preload, sd_span = (self.relative_sd[n] for n in SUPPORT_NAMES)
         note = (
             f"axial support: yields above {preload / 1e3:.3g} kN ({_uncertainty(sd_preload)}) and passes at most "
             f"{(preload + span) / 1e3:.3g} kN (the span {span / 1e3:.3g} kN, {_uncertainty(sd_span)})"
         )
+        if rival is not None:
+            behind = rival["refined_criterion_above_best"]
+            return (f"{note}; these bags hardly tell it from a rigid support ({behind:.2g} behind by the "
+                    f"information criterion). {GIVE_THE_MOUNT}")
         if max(sd_preload, sd_span) < UNPINNED_LOG_SD:
             return note
         return (
             f"{note}. These bags hardly tell how much force it passes above its knee, so the contact force's "
-            "band (/touchdown/contact_force_std) is wide there; the mount's data sheet pins it: "
-            "-p training.axial_support:=given -p contact.support_preload:=N -p contact.support_span:=N"
+            f"band (/touchdown/contact_force_std) is wide there. {GIVE_THE_MOUNT}"
         )
+
+    def _support_rival(self) -> dict[str, Any] | None:
+        """The refined candidate of the chosen contact law with the other support, if within
+        UNDECIDED_CRITERION of the chosen fit."""
+        law = self.config.law
+        for c in self.candidates:
+            margin = c.get("refined_criterion_above_best")
+            if (margin is not None and 0.0 < margin < UNDECIDED_CRITERION and c["contact_law"] == law.setting
+                    and c.get("yields") == (not law.yields) and (law.yields or "support_preload" in c)):
+                return c
+        return None
 
 
 def measured_sensor_noise(config: Config, data: TrainingData, stream=STDERR) -> np.ndarray:
@@ -377,6 +400,28 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             + "; refined: " + ", ".join(c.name for c in finalists),
             file=stream,
         )
+
+    def nested_restart(c: Candidate, refined: Sequence[Candidate]) -> Candidate:
+        """A yielding fit that ends above its own law's rigid fit, which it contains as its limit, refined
+        once more from the rigid fit's constants with its own support; the lower of the two is kept."""
+        rigid = [r for r in refined if not r.yields and r.law == c.law]
+        if not c.yields or not rigid or rigid[0].convergence.final_loss >= c.convergence.final_loss:
+            return c
+        r = rigid[0]
+        theta_r, theta_c = r.coordinates.theta(r.x), c.coordinates.theta(c.x)
+        start = c.coordinates.initial(log_f0=theta_r.log_f0, log_q=theta_r.log_q, effects=theta_r.effects,
+                                      log_support=theta_c.log_support)
+        objective = problem(c.law, chunks, c.coordinates).objective
+        x, convergence = minimise(
+            objective, start, settings.calibration_steps, settings.tolerance,
+            f"calibrate {c.name}, refined from {r.name}'s constants (its loss {r.convergence.final_loss:.7g} "
+            f"below {c.convergence.final_loss:.7g})", stream, describe, bounds=c.coordinates.bounds(scales),
+        )
+        if not convergence.converged or convergence.final_loss >= c.convergence.final_loss:
+            return c
+        score = criterion(convergence.final_loss, len(SUPPORT_NAMES), n_valid, kind)
+        return c._replace(score=score, x=x, convergence=convergence)
+
     if spinning:
         ahead.wait(RING_REFINEMENT_PROGRAM)
     refined = []
@@ -423,6 +468,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
         score = criterion(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
         refined.append(c._replace(score=score, x=x, convergence=convergence))
+    if thorough:
+        refined = [nested_restart(c, refined) for c in refined]
     refined.sort(key=lambda c: c.score)
     best = refined[0]
     if len(refined) > 1:
@@ -434,11 +481,12 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         )
     finals = {c.name: c for c in refined}
     candidates = tuple(
-        {"law": c.name, "contact_law": c.law.setting, "loss": c.convergence.final_loss,
+        {"law": c.name, "contact_law": c.law.setting, "yields": c.yields, "loss": c.convergence.final_loss,
          "criterion_above_best": round(c.score - screened[0].score, 3),
          "steps": c.convergence.steps,
          **({"refined_loss": finals[c.name].convergence.final_loss,
-             "refined_criterion_above_best": round(finals[c.name].score - best.score, 3)} if c.name in finals else {})}
+             "refined_criterion_above_best": round(finals[c.name].score - best.score, 3),
+             **refined_support(finals[c.name])} if c.name in finals else {})}
         for c in screened
     )
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
@@ -481,9 +529,23 @@ UNDECIDED_CRITERION = 2.0
 #: sliding starts about there, dry steel or ceramic on steel is 0.1-0.3.
 LOW_FRICTION = 0.05
 
+#: How to give the axial support from the mount's data sheet (the disc springs' preload and the force they
+#: add at most until they block), which stage 1 then holds.
+GIVE_THE_MOUNT = (
+    "The mount's data sheet settles it: -p training.axial_support:=given -p contact.support_preload:=N "
+    "-p contact.support_span:=N"
+)
+
 #: Standard error of ln(value) from which a support's preload or span counts as not pinned by the bags:
 #: one factor of e either way.
 UNPINNED_LOG_SD = 1.0
+
+
+def refined_support(c: Candidate) -> dict[str, float]:
+    """A yielding candidate's refined preload and span (N, `support_preload` / `support_span`); {} if rigid."""
+    if not c.yields:
+        return {}
+    return dict(zip(SUPPORT_NAMES, (float(v) for v in np.exp(np.asarray(c.coordinates.theta(c.x).log_support)))))
 
 
 def _uncertainty(log_sd: float) -> str:
