@@ -291,6 +291,10 @@ def test_calibration_says_when_the_bags_hardly_tell_a_rigid_support_from_a_yield
     assert "-p training.axial_support:=given" in said
     alone = calibration(law, chosen, {**rigid, "refined_criterion_above_best": 3.0}, relative_sd=pinned).support_note()
     assert "rigid" not in alone and "given" not in alone, alone
+    # not pinned as well: both said, the remedy once
+    unpinned = {"support_preload": 2.5, "support_span": 23.0}
+    said = calibration(law, chosen, {**rigid, "refined_criterion_above_best": 1.9}, relative_sd=unpinned).support_note()
+    assert "rigid support (1.9 behind" in said and "is wide there" in said and said.count("axial_support:=given") == 1
 
 
 def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():

@@ -166,16 +166,14 @@ class Calibration:
             f"axial support: yields above {preload / 1e3:.3g} kN ({_uncertainty(sd_preload)}) and passes at most "
             f"{(preload + span) / 1e3:.3g} kN (the span {span / 1e3:.3g} kN, {_uncertainty(sd_span)})"
         )
+        unpinned = max(sd_preload, sd_span) >= UNPINNED_LOG_SD
         if rival is not None:
-            behind = rival["refined_criterion_above_best"]
-            return (f"{note}; these bags hardly tell it from a rigid support ({behind:.2g} behind by the "
-                    f"information criterion). {GIVE_THE_MOUNT}")
-        if max(sd_preload, sd_span) < UNPINNED_LOG_SD:
-            return note
-        return (
-            f"{note}. These bags hardly tell how much force it passes above its knee, so the contact force's "
-            f"band (/touchdown/contact_force_std) is wide there. {GIVE_THE_MOUNT}"
-        )
+            note += (f"; these bags hardly tell it from a rigid support ({rival['refined_criterion_above_best']:.2g} "
+                     "behind by the information criterion)")
+        if unpinned:
+            note += (". These bags hardly tell how much force it passes above its knee, so the contact force's "
+                     "band (/touchdown/contact_force_std) is wide there")
+        return f"{note}. {GIVE_THE_MOUNT}" if unpinned or rival is not None else note
 
     def _support_rival(self) -> dict[str, Any] | None:
         """The refined candidate of the chosen contact law with the other support, if within
