@@ -34,6 +34,7 @@ from touchdown_ros.core.calibration import (
     stage1_value_over,
     standard_errors_and_correlation,
     strongest_correlations,
+    support_law,
 )
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
@@ -543,7 +544,8 @@ def refined_support(c: Candidate) -> dict[str, float]:
     """A yielding candidate's refined preload and span (N, `support_preload` / `support_span`); {} if rigid."""
     if not c.yields:
         return {}
-    return dict(zip(SUPPORT_NAMES, (float(v) for v in np.exp(np.asarray(c.coordinates.theta(c.x).log_support)))))
+    law = support_law(c.law, c.coordinates.theta(c.x).log_support)
+    return dict(zip(SUPPORT_NAMES, (float(law.support_preload), float(law.support_span))))
 
 
 def _uncertainty(log_sd: float) -> str:
