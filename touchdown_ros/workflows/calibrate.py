@@ -403,10 +403,9 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     def nested_restart(c: Candidate, refined: Sequence[Candidate]) -> Candidate:
         """A yielding fit that ends above its own law's rigid fit, which it contains as its limit, refined
         once more from the rigid fit's constants with its own support; the lower of the two is kept."""
-        rigid = [r for r in refined if not r.yields and r.law == c.law]
-        if not c.yields or not rigid or rigid[0].convergence.final_loss >= c.convergence.final_loss:
+        r = next((r for r in refined if not r.yields and r.law == c.law), None)
+        if not c.yields or r is None or r.convergence.final_loss >= c.convergence.final_loss:
             return c
-        r = rigid[0]
         theta_r, theta_c = r.coordinates.theta(r.x), c.coordinates.theta(c.x)
         start = c.coordinates.initial(log_f0=theta_r.log_f0, log_q=theta_r.log_q, effects=theta_r.effects,
                                       log_support=theta_c.log_support)
