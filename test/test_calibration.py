@@ -258,6 +258,8 @@ def test_calibration_names_the_contact_laws_the_bags_hardly_tell_from_the_chosen
     assert "hardly tell linear from hertz:1.111 (0.48 behind)" in said, said
     assert "-p 'training.contact_laws:=[hertz:1.111]'" in said and "hertz:1.5 (" not in said
     assert note(linear, {**rollers, "refined_criterion_above_best": 2.5}, balls) is None
+    # ahead of the chosen fit (a yielding one kept for its rigid limit close ahead, `undecided_support`)
+    assert "from hertz:1.111 (0.3 ahead)" in note(linear, {**rollers, "refined_criterion_above_best": -0.3})
     assert ContactLaw(1.5, 1.5).setting == "hertz:1.5" and ContactLaw(1.0, 0.0).setting == "linear"
 
 
@@ -295,6 +297,30 @@ def test_calibration_says_when_the_bags_hardly_tell_a_rigid_support_from_a_yield
     unpinned = {"support_preload": 2.5, "support_span": 23.0}
     said = calibration(law, chosen, {**rigid, "refined_criterion_above_best": 1.9}, relative_sd=unpinned).support_note()
     assert "rigid support (1.9 behind" in said and "is wide there" in said and said.count("axial_support:=given") == 1
+    # kept yielding with the rigid fit ahead by less than 2 (`undecided_support`): said, and why it is kept
+    kept = {**yielding, "refined_criterion_above_best": 0.0}
+    said = calibration(law, kept, {**rigid, "refined_criterion_above_best": -0.436}, relative_sd=pinned).support_note()
+    assert "rigid support (0.44 ahead by the information criterion), and the yielding one is kept" in said, said
+    assert "-p training.axial_support:=given" in said
+
+
+def test_undecided_support_keeps_the_yielding_fit_the_bags_hardly_tell_from_its_rigid_limit():
+    """The candidate of the lowest criterion, but a yielding fit within 2 of its law's rigid fit, chosen first,
+    is kept instead; not further behind, not another law's, and a yielding fit chosen first stays."""
+    from touchdown_ros.workflows.calibrate import Candidate, undecided_support
+
+    linear, roller = ContactLaw.of("linear"), ContactLaw.of("hertz", 10 / 9)
+
+    def fit(score, law, yields):
+        return Candidate(score, law.with_support(38.6e3, 6.8e3) if yields else law, None, None, None, yields)
+
+    rigid, yielding = fit(100.0, linear, False), fit(101.9, linear, True)
+    assert undecided_support([rigid, yielding]) is yielding
+    assert undecided_support([rigid, fit(101.0, roller, True), yielding]) is yielding
+    for others in ([fit(102.1, linear, True)], [fit(100.5, roller, True)], [fit(100.5, roller, False)]):
+        assert undecided_support([rigid, *others]) is rigid
+    first = fit(99.0, linear, True)
+    assert undecided_support([first, rigid]) is first
 
 
 def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():

@@ -124,7 +124,8 @@ class Calibration:
         if not behind:
             return None
         closest = sorted(behind, key=behind.get)
-        rivals = ", ".join(f"{law} ({behind[law]:.2g} behind)" for law in closest)
+        rivals = ", ".join(f"{law} ({abs(behind[law]):.2g} {'behind' if behind[law] >= 0 else 'ahead'})"
+                           for law in closest)
         return (
             f"contact law: these bags hardly tell {chosen} from {rivals} by the information criterion; "
             "where the bearing's is known, give it (balls: hertz:1.5, rollers: hertz:1.111), "
@@ -169,23 +170,30 @@ class Calibration:
         )
         unpinned = max(sd_preload, sd_span) >= UNPINNED_LOG_SD
         if rival is not None:
-            note += (f"; these bags hardly tell it from a rigid support ({rival['refined_criterion_above_best']:.2g} "
-                     "behind by the information criterion)")
+            apart = rival["refined_criterion_above_best"] - self._refined(True)["refined_criterion_above_best"]
+            note += (f"; these bags hardly tell it from a rigid support ({abs(apart):.2g} "
+                     f"{'behind' if apart > 0 else 'ahead'} by the information criterion)")
+            if apart <= 0:
+                note += ", and the yielding one is kept: it contains the rigid one as its limit"
         if unpinned:
             note += (". These bags hardly tell how much force it passes above its knee, so the contact force's "
                      "band (/touchdown/contact_force_std) is wide there")
         return f"{note}. {GIVE_THE_MOUNT}" if unpinned or rival is not None else note
 
+    def _refined(self, yields: bool) -> dict[str, Any] | None:
+        """The refined candidate of the chosen contact law with a yielding or a rigid support, if any."""
+        return next((c for c in self.candidates if c.get("refined_criterion_above_best") is not None
+                     and c["contact_law"] == self.config.law.setting and c.get("yields") == yields), None)
+
     def _support_rival(self) -> dict[str, Any] | None:
         """The refined candidate of the chosen contact law with the other support, if within
         UNDECIDED_CRITERION of the chosen fit."""
         law = self.config.law
-        for c in self.candidates:
-            margin = c.get("refined_criterion_above_best")
-            if (margin is not None and 0.0 < margin < UNDECIDED_CRITERION and c["contact_law"] == law.setting
-                    and c.get("yields") == (not law.yields) and (law.yields or "support_preload" in c)):
-                return c
-        return None
+        chosen, rival = self._refined(law.yields), self._refined(not law.yields)
+        if chosen is None or rival is None or (not law.yields and "support_preload" not in rival):
+            return None
+        apart = rival["refined_criterion_above_best"] - chosen["refined_criterion_above_best"]
+        return rival if abs(apart) < UNDECIDED_CRITERION else None
 
 
 def measured_sensor_noise(config: Config, data: TrainingData, stream=STDERR) -> np.ndarray:
@@ -469,12 +477,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     if thorough:
         refined = [nested_restart(c, refined) for c in refined]
     refined.sort(key=lambda c: c.score)
-    best = refined[0]
+    best = undecided_support(refined)
     if len(refined) > 1:
         print(
             f"refined by {criterion.__name__.upper()} (above the best): "
             + ", ".join(f"{c.name} {c.score - best.score:.4g}" for c in refined)
-            + f"; chosen: {best.name}",
+            + f"; chosen: {best.name}"
+            + ("" if best is refined[0] else f" (within {UNDECIDED_CRITERION:g} of {refined[0].name}, its limit)"),
             file=stream,
         )
     finals = {c.name: c for c in refined}
@@ -522,6 +531,19 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
 #: Information criterion (AIC or BIC) within which another contact law's refined fit is as good as the
 #: chosen one: differences below 2 are the usual "substantial support" for both (Burnham & Anderson).
 UNDECIDED_CRITERION = 2.0
+
+
+def undecided_support(refined: Sequence[Candidate]) -> Candidate:
+    """The candidate to keep of `refined` (sorted by the criterion): the first, but where it is rigid and
+    its law's yielding fit comes within UNDECIDED_CRITERION, the yielding one. It contains the rigid support
+    as its limit, and its knee's and cap's uncertainty reaches the force band, where a rigid support
+    would claim to know what the bags do not tell."""
+    best = refined[0]
+    rival = next((c for c in refined if c.yields and c.law.setting == best.law.setting), None)
+    if best.yields or rival is None or rival.score - best.score >= UNDECIDED_CRITERION:
+        return best
+    return rival
+
 
 #: Friction coefficient (mu, k_ZR) below which the paper's friction reads as hardly any: boundary-lubricated
 #: sliding starts about there, dry steel or ceramic on steel is 0.1-0.3.
