@@ -152,14 +152,14 @@ class Calibration:
         chosen law's fit with the other support (rigid or yielding) comes within UNDECIDED_CRITERION, that
         the bags hardly tell the two apart; None when the support is given, or rigid and so chosen."""
         law = self.config.law
-        rival = self._support_rival()
+        rival, apart = self._support_rival() or (None, None)
         if rival is None and (not law.yields or not all(n in self.relative_sd for n in SUPPORT_NAMES)):
             return None
         if not law.yields:
             preload, span = (rival[n] for n in SUPPORT_NAMES)
             return (
                 f"axial support: these bags hardly tell a rigid support from one yielding above {preload / 1e3:.3g} kN "
-                f"and passing at most {(preload + span) / 1e3:.3g} kN ({rival['refined_criterion_above_best']:.2g} "
+                f"and passing at most {(preload + span) / 1e3:.3g} kN ({apart:.2g} "
                 f"behind by the information criterion); a rigid one is assumed. {GIVE_THE_MOUNT}"
             )
         preload, span = float(law.support_preload), float(law.support_span)
@@ -170,7 +170,6 @@ class Calibration:
         )
         unpinned = max(sd_preload, sd_span) >= UNPINNED_LOG_SD
         if rival is not None:
-            apart = rival["refined_criterion_above_best"] - self._refined(True)["refined_criterion_above_best"]
             note += (f"; these bags hardly tell it from a rigid support ({abs(apart):.2g} "
                      f"{'behind' if apart > 0 else 'ahead'} by the information criterion)")
             if apart <= 0:
@@ -185,15 +184,15 @@ class Calibration:
         return next((c for c in self.candidates if c.get("refined_criterion_above_best") is not None
                      and c["contact_law"] == self.config.law.setting and c.get("yields") == yields), None)
 
-    def _support_rival(self) -> dict[str, Any] | None:
-        """The refined candidate of the chosen contact law with the other support, if within
-        UNDECIDED_CRITERION of the chosen fit."""
+    def _support_rival(self) -> tuple[dict[str, Any], float] | None:
+        """The refined candidate of the chosen contact law with the other support and its criterion above the
+        chosen fit's (negative: ahead), if within UNDECIDED_CRITERION of it."""
         law = self.config.law
         chosen, rival = self._refined(law.yields), self._refined(not law.yields)
         if chosen is None or rival is None or (not law.yields and "support_preload" not in rival):
             return None
         apart = rival["refined_criterion_above_best"] - chosen["refined_criterion_above_best"]
-        return rival if abs(apart) < UNDECIDED_CRITERION else None
+        return (rival, apart) if abs(apart) < UNDECIDED_CRITERION else None
 
 
 def measured_sensor_noise(config: Config, data: TrainingData, stream=STDERR) -> np.ndarray:
