@@ -20,7 +20,7 @@ a stiffness where the rotor is displaced, a contact effect only in contact.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import jax
 import numpy as np
@@ -38,11 +38,15 @@ from touchdown_ros.core.types import FilterNoise, Model, Rig
 BASELINE = "none"
 
 
-def with_candidates(effects: Effects, candidates: Sequence[Effect]) -> Effects:
-    """The model's effects followed by the candidates at their defaults (switched on by gates)."""
+def with_candidates(
+    effects: Effects, candidates: Sequence[Effect], starts: Mapping[str, Mapping[str, float]] | None = None
+) -> Effects:
+    """The model's effects followed by the candidates at their defaults, or where `starts` (candidate ->
+    parameter -> value) puts them, switched on by gates."""
+    starts = starts or {}
     return Effects(
         effects.effects + tuple(candidates),
-        effects.params + tuple(c.defaults() for c in candidates),
+        effects.params + tuple({**c.defaults(), **starts.get(c.name, {})} for c in candidates),
         effects.gates + (1.0,) * len(candidates),
     )
 

@@ -37,7 +37,8 @@ from touchdown_ros.core.calibration import (
     support_law,
 )
 from touchdown_ros.core.dynamics import normal_force
-from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.effects import Effects, gates_for
+from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
 from touchdown_ros.core.types import EXACT_SUPPORT, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
@@ -221,6 +222,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     and the standard errors' programs (and with a spinning ring the refinement's) are compiled in `ahead`'s
     background thread while the laws are fitted."""
     settings = config.training
+    config = started_from_orbits(config, data, stream)
     sigma = measured_sensor_noise(config, data, stream)
     print(
         "sensor noise from the levitated samples: " + ", ".join(f"{a} {v * 1e6:.2f} um" for a, v in zip("xyz", sigma)),
@@ -616,6 +618,19 @@ def filtered_records(
         states.append(np.asarray(chunk_states)[:held])
         nis.append(np.asarray(chunk_nis)[:held])
     return np.concatenate(states), np.concatenate(nis)
+
+
+def started_from_orbits(config: Config, data: TrainingData, stream=STDERR) -> Config:
+    """The rig with its speed effects started where their speed fits the bags' orbits
+    (`core.orbit.speed_effects_from_orbits`, each in the bags it acts in), said on the stream."""
+    effects = config.effects
+    gates = [gates_for(effects, c) for c in data.conditions] if data.conditions else [(1.0,) * len(effects)] * len(
+        data.records
+    )
+    started, moved = speed_effects_from_orbits(effects, config.rig, data.records, gates, config.sample_period)
+    for line in describe_starts(moved, effects.values()):
+        print(line, file=stream)
+    return dataclasses.replace(config, effects=started) if moved else config
 
 
 def start_scales(model: Model, noise: FilterNoise, h: float, chunks: Sequence[Batch]) -> Effects:

@@ -26,6 +26,7 @@ from touchdown_ros.core.calibration import (
     stage1_start,
     stage1_value_and_grad,
 )
+from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
 from touchdown_ros.core.selection import (
     BASELINE,
     Errors,
@@ -108,11 +109,11 @@ class _Problem:
 
     def __init__(
         self, config: Config, model: Model, candidates: Sequence[fx.Effect], data: TrainingData, k: int,
-        ahead: Ahead,
+        ahead: Ahead, starts: dict[str, dict[str, float]] | None = None,
     ):
         self.config, self.k, self.ahead = config, k, ahead
         self.own_effects = tuple(model.effects.names)  # fitted with every candidate
-        self.effects = with_candidates(model.effects, candidates)
+        self.effects = with_candidates(model.effects, candidates, starts)
         self.candidates = tuple(candidates)
         self.base = model._replace(effects=self.effects)
         self.noise = config.noise
@@ -209,7 +210,14 @@ def fit_candidates(
     thread while the baseline's fit compiles the loss's (`Ahead`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
-        problem = _Problem(config, model, candidates, data, settings.k, ahead)
+        # A speed candidate starts where its speed fits the orbits (a braked rotor's decay, read off the bags).
+        library = fx.Effects(tuple(candidates))
+        _, starts = speed_effects_from_orbits(
+            library, config.rig, data.records, [library.gates] * len(data.records), config.sample_period
+        )
+        for line in describe_starts(starts, library.values()):
+            print(line, file=stream)
+        problem = _Problem(config, model, candidates, data, settings.k, ahead, starts)
         problem.compile_ahead()
         ahead.start()
         return _fit_candidates(config, model, data, problem, settings, stream)

@@ -1,0 +1,135 @@
+"""The rotor's speed read from its orbit, and speed effects started there.
+
+A rotor that has settled on the bore whirls forward about the bearing's centre at about its own
+speed (the ring turns with it, the slip is a fraction of a per cent), so the angle of the measured
+(x, y) advances at the rotor's speed: a braked rotor's decay can be read off the displacements
+before any model is fitted. Stage 1's fit of a speed effect's parameters has many local minima
+(the ring's friction changes sign with the slip the speed sets), and from the library's defaults
+it stays in one: `speed_effects_from_orbits` gives it a start read from the data instead.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import least_squares
+
+from touchdown_ros.core.effects import SPEED, Effect, Effects
+from touchdown_ros.core.types import STATE_SIZE, THETA
+
+#: s, the window over which one orbit speed is read (about 40 revolutions' worth of angle at 5000 rpm).
+WINDOW = 5.0e-3
+#: A window counts when the rotor is on the bore: its radius at least this share of the record's
+#: 95th percentile ...
+ON_BORE = 0.8
+#: ... and steady: its radius varies by at most this share of its mean within the window.
+STEADY = 0.1
+#: Orbit speeds a speed effect may be fitted to: at least this many windows ...
+MIN_WINDOWS = 4
+#: ... over at least this span (s) between the first and the last.
+MIN_SPAN = 0.02
+
+
+class OrbitSpeeds(NamedTuple):
+    """The orbit's angular speed (rad/s) at `times` (s from the record's first sample)."""
+
+    times: np.ndarray
+    speeds: np.ndarray
+
+
+def whirl_speeds(etas: np.ndarray, h: float, window: float = WINDOW) -> OrbitSpeeds:
+    """The orbit's angular speed of a record (N, 3) m sampled every h s, over windows of `window` s
+    where the rotor whirls steadily on the bore (`ON_BORE`, `STEADY`), from the fastest such window
+    on: before it the whirl is still spinning up to the rotor's speed. NaN rows break a window."""
+    n = max(int(round(window / h)), 3)
+    xy = np.asarray(etas, dtype=float)[:, :2]
+    radius = np.hypot(xy[:, 0], xy[:, 1])
+    finite = np.isfinite(radius)
+    if finite.sum() < n:
+        return OrbitSpeeds(np.empty(0), np.empty(0))
+    top = np.percentile(radius[finite], 95)
+    angle = np.full(len(xy), np.nan)
+    angle[finite] = np.unwrap(np.arctan2(xy[finite, 1], xy[finite, 0]))
+    offsets = np.arange(n) * h
+    times, speeds = [], []
+    for start in range(0, len(xy) - n + 1, n):
+        r = radius[start : start + n]
+        if not np.isfinite(r).all() or r.mean() < ON_BORE * top or r.max() - r.min() > STEADY * r.mean():
+            continue
+        times.append((start + (n - 1) / 2) * h)
+        speeds.append(np.polyfit(offsets, angle[start : start + n], 1)[0])
+    if not speeds:
+        return OrbitSpeeds(np.empty(0), np.empty(0))
+    first = int(np.argmax(speeds))
+    return OrbitSpeeds(np.asarray(times[first:]), np.asarray(speeds[first:]))
+
+
+def _speed_of(effect: Effect, params: dict[str, jax.Array], times: np.ndarray, rig) -> jax.Array:
+    """The effect's rotor speed (rad/s) at `times` (s from the drop onset), theta = the rig's speed x t."""
+    states = jnp.zeros((len(times), STATE_SIZE)).at[:, THETA].set(rig.speed * jnp.asarray(times))
+    return jax.vmap(lambda xi: effect.function(xi, params, rig)[0])(states)
+
+
+def fit_speed_effect(effect: Effect, start: dict[str, float], rig, orbits: OrbitSpeeds) -> dict[str, float] | None:
+    """The effect's parameters that fit its speed, times a free factor (the whirl turns a little
+    faster or slower than the rotor), to the orbit speeds by least squares from `start`, within the
+    effect's bounds; None when the orbits are too few or too short (`MIN_WINDOWS`, `MIN_SPAN`) or the
+    fit does not lower the misfit of `start`."""
+    times, speeds = np.asarray(orbits.times), np.asarray(orbits.speeds)
+    if len(times) < MIN_WINDOWS or np.ptp(times) < MIN_SPAN:
+        return None
+    names = list(start)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        params = {k: jnp.asarray(v) for k, v in zip(names, x[1:])}
+        return np.asarray(x[0] * _speed_of(effect, params, times, rig)) - speeds
+
+    def factor_at(params: np.ndarray) -> float:
+        modelled = np.asarray(_speed_of(effect, {k: jnp.asarray(v) for k, v in zip(names, params)}, times, rig))
+        return float(modelled @ speeds / (modelled @ modelled)) if modelled @ modelled > 0 else 1.0
+
+    x0 = np.asarray([start[k] for k in names], dtype=float)
+    first = np.concatenate([[factor_at(x0)], x0])
+    bounds = [(-np.inf, np.inf)] + [effect.bounds.get(k, (-np.inf, np.inf)) for k in names]
+    result = least_squares(residuals, first, bounds=tuple(np.asarray(b, dtype=float) for b in zip(*bounds)),
+                           x_scale="jac")
+    if not np.isfinite(result.x).all() or result.cost >= 0.5 * float(np.sum(residuals(first) ** 2)):
+        return None
+    return {k: float(v) for k, v in zip(names, result.x[1:])}
+
+
+def speed_effects_from_orbits(
+    effects: Effects, rig, records: Sequence[np.ndarray], gates: Sequence[Sequence[float]], h: float
+) -> tuple[Effects, dict[str, dict[str, float]]]:
+    """`effects` with each speed effect started where its speed fits the orbit speeds of the records
+    (each (N, 3) m from the drop onset) it acts in (gates: one row per record, one factor per effect),
+    and {effect: fitted parameters} of those it moved; the others keep their values."""
+    if not effects.acts_on(SPEED):
+        return effects, {}
+    read = [whirl_speeds(etas, h) for etas in records]
+    values, moved = effects.values(), {}
+    for i, effect in enumerate(effects.effects):
+        if effect.kind != SPEED:
+            continue
+        acting = [o for o, g in zip(read, gates) if g[i] > 0.5]
+        if not acting:
+            continue
+        pooled = OrbitSpeeds(np.concatenate([o.times for o in acting]), np.concatenate([o.speeds for o in acting]))
+        fitted = fit_speed_effect(effect, values[effect.name], rig, pooled)
+        if fitted is not None:
+            moved[effect.name] = fitted
+    return effects.with_values(moved), moved
+
+
+def describe_starts(moved: dict[str, dict[str, float]], before: dict[str, dict[str, float]]) -> list[str]:
+    """One line per effect `speed_effects_from_orbits` moved: its new start and the value it had."""
+    return [
+        f"{name} starts where its speed fits the orbit's (the rotor whirling on the bore): "
+        + ", ".join(f"{k} {v:.4g} (was {before[name][k]:.4g})" for k, v in values.items())
+        for name, values in moved.items()
+    ]
+
+
+__all__ = ["OrbitSpeeds", "describe_starts", "fit_speed_effect", "speed_effects_from_orbits", "whirl_speeds"]
