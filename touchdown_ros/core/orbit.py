@@ -26,10 +26,14 @@ WINDOW = 5.0e-3
 ON_BORE = 0.8
 #: ... and steady: its radius varies by at most this share of its mean within the window.
 STEADY = 0.1
+#: The whirl has spun up once a window's speed is within this share of the fastest window's.
+SPUN_UP = 0.01
 #: Orbit speeds a speed effect may be fitted to: at least this many windows ...
 MIN_WINDOWS = 4
-#: ... over at least this span (s) between the first and the last.
+#: ... over at least this span (s) between the first and the last; and the orbits show the effect when
+#: its fit leaves at most this share of the misfit of a constant speed (the scatter of a steady whirl).
 MIN_SPAN = 0.02
+SHOWN = 0.25
 
 
 class OrbitSpeeds(NamedTuple):
@@ -41,8 +45,9 @@ class OrbitSpeeds(NamedTuple):
 
 def whirl_speeds(etas: np.ndarray, h: float, window: float = WINDOW) -> OrbitSpeeds:
     """The orbit's angular speed of a record (N, 3) m sampled every h s, over windows of `window` s
-    where the rotor whirls steadily on the bore (`ON_BORE`, `STEADY`), from the fastest such window
-    on: before it the whirl is still spinning up to the rotor's speed. NaN rows break a window."""
+    where the rotor whirls steadily on the bore (`ON_BORE`, `STEADY`), from the first such window
+    within `SPUN_UP` of the fastest on: before it the whirl is still spinning up to the rotor's speed.
+    NaN rows break a window."""
     n = max(int(round(window / h)), 3)
     xy = np.asarray(etas, dtype=float)[:, :2]
     radius = np.hypot(xy[:, 0], xy[:, 1])
@@ -62,8 +67,9 @@ def whirl_speeds(etas: np.ndarray, h: float, window: float = WINDOW) -> OrbitSpe
         speeds.append(np.polyfit(offsets, angle[start : start + n], 1)[0])
     if not speeds:
         return OrbitSpeeds(np.empty(0), np.empty(0))
-    first = int(np.argmax(speeds))
-    return OrbitSpeeds(np.asarray(times[first:]), np.asarray(speeds[first:]))
+    speeds_ = np.asarray(speeds)
+    first = int(np.argmax(speeds_ >= (1.0 - SPUN_UP) * speeds_.max()))
+    return OrbitSpeeds(np.asarray(times[first:]), speeds_[first:])
 
 
 def _speed_of(effect: Effect, params: dict[str, jax.Array], times: np.ndarray, rig) -> jax.Array:
@@ -75,8 +81,9 @@ def _speed_of(effect: Effect, params: dict[str, jax.Array], times: np.ndarray, r
 def fit_speed_effect(effect: Effect, start: dict[str, float], rig, orbits: OrbitSpeeds) -> dict[str, float] | None:
     """The effect's parameters that fit its speed, times a free factor (the whirl turns a little
     faster or slower than the rotor), to the orbit speeds by least squares from `start`, within the
-    effect's bounds; None when the orbits are too few or too short (`MIN_WINDOWS`, `MIN_SPAN`) or the
-    fit does not lower the misfit of `start`."""
+    effect's bounds; None when the orbits are too few or too short (`MIN_WINDOWS`, `MIN_SPAN`), when
+    they do not show the effect (its fit leaves more than `SHOWN` of the misfit of a constant speed)
+    or the fit does not lower the misfit of `start`."""
     times, speeds = np.asarray(orbits.times), np.asarray(orbits.speeds)
     if len(times) < MIN_WINDOWS or np.ptp(times) < MIN_SPAN:
         return None
@@ -95,7 +102,9 @@ def fit_speed_effect(effect: Effect, start: dict[str, float], rig, orbits: Orbit
     bounds = [(-np.inf, np.inf)] + [effect.bounds.get(k, (-np.inf, np.inf)) for k in names]
     result = least_squares(residuals, first, bounds=tuple(np.asarray(b, dtype=float) for b in zip(*bounds)),
                            x_scale="jac")
-    if not np.isfinite(result.x).all() or result.cost >= 0.5 * float(np.sum(residuals(first) ** 2)):
+    constant = float(np.sum((speeds - speeds.mean()) ** 2))  # a constant speed times the best factor
+    if not np.isfinite(result.x).all() or result.cost >= 0.5 * min(float(np.sum(residuals(first) ** 2)),
+                                                                   SHOWN * constant):
         return None
     return {k: float(v) for k, v in zip(names, result.x[1:])}
 
@@ -123,6 +132,15 @@ def speed_effects_from_orbits(
     return effects.with_values(moved), moved
 
 
+def candidate_starts(
+    candidates: Sequence[Effect], rig, records: Sequence[np.ndarray], h: float
+) -> dict[str, dict[str, float]]:
+    """{candidate: parameters} of the speed candidates (acting in every record) whose speed fits the
+    records' orbits (`speed_effects_from_orbits`); candidates the orbits do not move are left out."""
+    speed = Effects(tuple(c for c in candidates if c.kind == SPEED))
+    return speed_effects_from_orbits(speed, rig, records, [speed.gates] * len(records), h)[1]
+
+
 def describe_starts(moved: dict[str, dict[str, float]], before: dict[str, dict[str, float]]) -> list[str]:
     """One line per effect `speed_effects_from_orbits` moved: its new start and the value it had."""
     return [
@@ -132,4 +150,11 @@ def describe_starts(moved: dict[str, dict[str, float]], before: dict[str, dict[s
     ]
 
 
-__all__ = ["OrbitSpeeds", "describe_starts", "fit_speed_effect", "speed_effects_from_orbits", "whirl_speeds"]
+__all__ = [
+    "OrbitSpeeds",
+    "candidate_starts",
+    "describe_starts",
+    "fit_speed_effect",
+    "speed_effects_from_orbits",
+    "whirl_speeds",
+]

@@ -26,7 +26,7 @@ from touchdown_ros.core.calibration import (
     stage1_start,
     stage1_value_and_grad,
 )
-from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
+from touchdown_ros.core.orbit import candidate_starts
 from touchdown_ros.core.selection import (
     BASELINE,
     Errors,
@@ -200,6 +200,7 @@ def fit_candidates(
     names: Sequence[str],
     settings: FitSettings = FitSettings(),
     stream=STDERR,
+    starts: dict[str, dict[str, float]] | None = None,
 ) -> Selection:
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
     factors and the model's own effects, from the calibrated values of `config` (the coefficient
@@ -207,16 +208,12 @@ def fit_candidates(
     fit the baseline and the `settings.from_best` next candidates again from the best one's
     constants, keeping the lower loss; fit the `settings.per_bag` best (by the criterion) again bag
     by bag, their constants kept. The measures' and standard errors' programs compile in a background
-    thread while the baseline's fit compiles the loss's (`Ahead`)."""
+    thread while the baseline's fit compiles the loss's (`Ahead`). A speed candidate starts where `starts`
+    puts it (default: where its speed fits the records' orbits, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
-        # A speed candidate starts where its speed fits the orbits (a braked rotor's decay, read off the bags).
-        library = fx.Effects(tuple(candidates))
-        _, starts = speed_effects_from_orbits(
-            library, config.rig, data.records, [library.gates] * len(data.records), config.sample_period
-        )
-        for line in describe_starts(starts, library.values()):
-            print(line, file=stream)
+        if starts is None:
+            starts = candidate_starts(candidates, config.rig, data.records, config.sample_period)
         problem = _Problem(config, model, candidates, data, settings.k, ahead, starts)
         problem.compile_ahead()
         ahead.start()

@@ -27,6 +27,7 @@ from touchdown_ros.core.diagnostics.signature import signature
 from touchdown_ros.core.dynamics import measurement as expected_output
 from touchdown_ros.core.estimate import PAD_BUCKET, initial_belief
 from touchdown_ros.core.impacts import impact_numbers
+from touchdown_ros.core.orbit import candidate_starts, describe_starts
 from touchdown_ros.core.types import Model
 from touchdown_ros.io.bags import read_conditions
 from touchdown_ros.io.coefficients import load_coefficients
@@ -107,7 +108,7 @@ class _Compiled:
             lambda m, init, etas: disturbance_smoother(m, process, measurement, init, etas, h, force_walk)
         )
         self.coefficient_regressors = jax.jit(coefficient_regressors)
-        self.library_regressors = jax.jit(lambda m, s: library_regressors(fx.LIBRARY, s, m))
+        self.library_regressors = jax.jit(lambda m, s, at: library_regressors(fx.LIBRARY, s, m, at))
 
 
 @functools.lru_cache(maxsize=4)
@@ -163,12 +164,13 @@ def _force_error(b: BagDiagnosis) -> np.ndarray | None:
     return np.asarray(b.result.estimate.filtered.force_xyz) - truth.contact_force
 
 
-def _regressors(b: BagDiagnosis, compiled: _Compiled) -> RecordRegressors:
-    """The regressors of FROLS along one bag's smoothed states (padded, so that bags share compilations)."""
+def _regressors(b: BagDiagnosis, compiled: _Compiled, at: dict[str, dict[str, float]]) -> RecordRegressors:
+    """The regressors of FROLS along one bag's smoothed states (padded, so that bags share compilations),
+    the candidates linearised at their defaults or where `at` puts them."""
     n = len(b.phase)
     states = jnp.asarray(_pad(b.missing.state, repeat=True))
     coefficients = np.asarray(compiled.coefficient_regressors(b.model, states))[:n]
-    regressors = compiled.library_regressors(b.model, states)
+    regressors = compiled.library_regressors(b.model, states, at)
     effects = {name: tuple(np.asarray(a)[:n] for a in pair) for name, pair in regressors.items()}
     return RecordRegressors(b.missing.force, b.missing.force_std, coefficients, effects)
 
@@ -232,8 +234,14 @@ def diagnose(
         [b.result.estimate.smoothed.state for b in results],
         settings.max_lag,
     )
+    # A speed effect's force is far from linear in its parameters (a braked rotor's unbalance lags by
+    # radians): it is ranked (linearised) and fitted from where its speed fits the bags' orbits, when they show it.
+    library = [e for name, e in fx.LIBRARY.items() if name not in estimator.model.effects.names]
+    starts = candidate_starts(library, config.rig, [b.result.estimate.measured for b in results], config.sample_period)
+    for line in describe_starts(starts, {name: fx.LIBRARY[name].defaults() for name in starts}):
+        print(f"[diagnose {label}] {line}", file=stream, flush=True)
     print(f"[diagnose {label}] ranking candidate effects (FROLS)", file=stream, flush=True)
-    ranking = rank_effects([_regressors(b, compiled) for b in results], fx.LIBRARY)
+    ranking = rank_effects([_regressors(b, compiled, starts) for b in results], fx.LIBRARY, starts)
     rows = ranking_rows(ranking, fx.LIBRARY, [b.path.name for b in results])
     verdict = frols_verdict(ranking, rows, settings.threshold)
     if settings.fitted:
@@ -244,7 +252,8 @@ def diagnose(
         )
         names = [row["candidate"] for row in rows[: settings.fitted]]
         selection = fit_candidates(
-            config, estimator.model, load_training_data(config, bags), names, FitSettings(k=settings.k), stream
+            config, estimator.model, load_training_data(config, bags), names, FitSettings(k=settings.k), stream,
+            starts,
         )
         verdict = fitted_verdict(verdict, selection)
     missing_signature = signature(

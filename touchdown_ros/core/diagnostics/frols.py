@@ -140,10 +140,15 @@ class RecordRegressors(NamedTuple):
     effects: Mapping[str, tuple[np.ndarray, np.ndarray]]  # name -> (J (N, 3, p), f0 (N, 3)), `effect_regressors`
 
 
-def rank_effects(records: Sequence[RecordRegressors], library: Mapping[str, Effect]) -> Ranking:
+def rank_effects(
+    records: Sequence[RecordRegressors],
+    library: Mapping[str, Effect],
+    at: Mapping[str, Mapping[str, float]] | None = None,
+) -> Ranking:
     """`frols` of the missing force of all records on the candidates of `library` (in its order), each
     record a group, the rows weighted by the missing force's certainty (1 / its standard deviation);
-    each candidate's linear coefficients offset to physical values at its defaults."""
+    each candidate's linear coefficients offset to physical values at its defaults, or where `at` puts it
+    (the point its regressors were linearised at)."""
     ys, forced, groups, blocks = [], [], [], {name: [] for name in library}
     for g, record in enumerate(records):
         n = len(record.force)
@@ -156,7 +161,7 @@ def rank_effects(records: Sequence[RecordRegressors], library: Mapping[str, Effe
             blocks[name].append((J * weight[..., None]).reshape(3 * n, -1))
     offsets = {}
     for name, effect in library.items():
-        p0 = np.array(list(effect.defaults().values()))
+        p0 = np.array(list({**effect.defaults(), **(at or {}).get(name, {})}.values()))
         J = np.concatenate([record.effects[name][0] for record in records])
         f0 = np.concatenate([record.effects[name][1] for record in records])
         offsets[name] = linearisation_offset(J, f0, p0)
