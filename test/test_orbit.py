@@ -10,7 +10,7 @@ from touchdown_ros.core.orbit import speed_effects_from_orbits, whirl_speeds
 from touchdown_ros.core.selection import with_candidates
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.calibrate import started_from_orbits
-from touchdown_ros.workflows.training_data import load_training_data
+from touchdown_ros.workflows.training_data import TrainingData, load_training_data
 
 BRAKED = {"effects.active": ["brake_decay"], "effects.when.brake_decay": "brake"}
 
@@ -54,6 +54,20 @@ def test_brake_decay_starts_at_the_decay_the_orbits_show_and_only_in_the_braked_
     assert "(was 0.1)" in stream.getvalue()
 
 
+def test_a_conditional_speed_effect_is_not_read_from_bags_without_conditions(drops):
+    """Records with no recorded conditions: brake_decay (when: brake) acts in none of them in training
+    (`TrainingData.gates`), so their orbits do not start it either."""
+    config = load_config(overrides=BRAKED)
+    records = tuple(record.measured[record.drop_index :] for _, record in (drops[9], drops[6]))
+    stream = io.StringIO()
+    started = started_from_orbits(config, TrainingData((), records), stream)
+    assert started.effects.values() == config.effects.values() and stream.getvalue() == ""
+    unconditional = load_config(overrides={"effects.active": ["brake_decay"]})
+    assert started_from_orbits(unconditional, TrainingData((), records), stream).effects.values() != (
+        unconditional.effects.values()
+    )
+
+
 def test_an_unbraked_rotor_gives_no_decay_to_start_from(drops):
     config = load_config(overrides=BRAKED)
     path, record = drops[1]
@@ -65,7 +79,7 @@ def test_an_unbraked_rotor_gives_no_decay_to_start_from(drops):
     assert orbit.times.min() > 0.12 and moved == {} and started.values() == effects.values()
 
 
-def test_a_speed_candidate_starts_where_the_orbits_put_it():
+def test_candidates_start_where_given_and_at_their_defaults_otherwise():
     model_effects = fx.Effects((fx.LIBRARY["axial_load"],), ({"force": 1900.0},))
     combined = with_candidates(model_effects, [fx.LIBRARY["brake_decay"], fx.LIBRARY["radial_load"]],
                                {"brake_decay": {"rate": 0.74}})

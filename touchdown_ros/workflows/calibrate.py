@@ -37,7 +37,7 @@ from touchdown_ros.core.calibration import (
     support_law,
 )
 from touchdown_ros.core.dynamics import normal_force
-from touchdown_ros.core.effects import Effects, gates_for
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
 from touchdown_ros.core.types import EXACT_SUPPORT, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
@@ -624,10 +624,9 @@ def started_from_orbits(config: Config, data: TrainingData, stream=STDERR) -> Co
     """The rig with its speed effects started where their speed fits the bags' orbits
     (`core.orbit.speed_effects_from_orbits`, each in the bags it acts in), said on the stream."""
     effects = config.effects
-    gates = [gates_for(effects, c) for c in data.conditions] if data.conditions else [(1.0,) * len(effects)] * len(
-        data.records
+    started, moved = speed_effects_from_orbits(
+        effects, config.rig, data.records, data.gates(effects), config.sample_period
     )
-    started, moved = speed_effects_from_orbits(effects, config.rig, data.records, gates, config.sample_period)
     for line in describe_starts(moved, effects.values()):
         print(line, file=stream)
     return dataclasses.replace(config, effects=started) if moved else config

@@ -122,8 +122,7 @@ class _Problem:
         self.mesh = record_mesh()
         self.block = config.held_out_block_samples()
         self.every = config.training.held_out_every
-        gates = [fx.gates_for(model.effects, c) for c in (data.conditions or ({},) * len(data.records))]
-        batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=gates)
+        batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=data.gates(model.effects))
         self.batch = hold_out(batch, self.block, self.every)
         self.start = stage1_start(self.guess, self.effects, self.scales)
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))

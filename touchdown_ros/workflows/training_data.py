@@ -33,6 +33,10 @@ class TrainingData:
         pick = lambda items: tuple(items[i] for i in keep) if items else ()  # noqa: E731
         return TrainingData(pick(self.paths), pick(self.records), pick(self.conditions), pick(self.levitated))
 
+    def gates(self, effects: Effects) -> list[tuple[float, ...]]:
+        """Each record's gates of `effects` by its bag's conditions (none recorded: a conditional effect is off)."""
+        return [gates_for(effects, c) for c in self.conditions or ({},) * len(self.records)]
+
 
 def load_training_data(config: Config, paths: Sequence[str | Path], duration: float | None = None) -> TrainingData:
     """Read and validate every bag (all of them before any work), keep the samples after the drop
@@ -74,9 +78,7 @@ def training_batch(
 ) -> Batch:
     """The records as one batch on `record_mesh()`, each with its effects' gates; with `size`, padded
     to that many records (`pad_records`: the copies count nowhere)."""
-    conditions = data.conditions or ({},) * len(data.records)
-    gates = [gates_for(effects, c) for c in conditions]
-    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, gates)
+    batch = make_batch(list(data.records), np.asarray(config.noise.initial), length, data.gates(effects))
     return place(batch if size is None else pad_records(batch, size), record_mesh())
 
 
