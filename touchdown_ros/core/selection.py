@@ -43,12 +43,11 @@ def with_candidates(
 ) -> Effects:
     """The model's effects followed by the candidates at their defaults, or where `starts` (candidate ->
     parameter -> value) puts them, switched on by gates."""
-    starts = starts or {}
     return Effects(
         effects.effects + tuple(candidates),
-        effects.params + tuple({**c.defaults(), **starts.get(c.name, {})} for c in candidates),
+        effects.params + tuple(c.defaults() for c in candidates),
         effects.gates + (1.0,) * len(candidates),
-    )
+    ).with_values(starts or {})
 
 
 def candidate_gates(model_gates: np.ndarray, count: int, chosen: int | None) -> np.ndarray:
