@@ -411,14 +411,19 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
 
     def nested_restart(c: Candidate, refined: Sequence[Candidate]) -> Candidate:
         """A yielding fit that ends above its own law's rigid fit, which it contains as its limit, refined
-        once more from the rigid fit's constants with its own support; the lower of the two is kept."""
+        once more from the rigid fit's constants with the support of the lowest loss among its own and the
+        start grid's under those constants (a knee carried above every impact no longer moves the loss,
+        so it stays there); the lower of the two fits is kept."""
         r = next((r for r in refined if not r.yields and r.law == c.law), None)
         if not c.yields or r is None or r.convergence.final_loss >= c.convergence.final_loss:
             return c
         theta_r, theta_c = r.coordinates.theta(r.x), c.coordinates.theta(c.x)
-        start = c.coordinates.initial(log_f0=theta_r.log_f0, log_q=theta_r.log_q, effects=theta_r.effects,
-                                      log_support=theta_c.log_support)
-        objective = problem(c.law, chunks, c.coordinates).objective
+        kept = {"log_f0": theta_r.log_f0, "log_q": theta_r.log_q, "effects": theta_r.effects}
+        screened_model = stage1_model_and_noise(theta_r, law_model(screening(c.law)), screen_noise, scales)
+        grid = support_starts(config.law, *screened_model, h, screened_records(screen_batch))
+        objective, loss, _ = problem(c.law, chunks, c.coordinates)
+        start = min((c.coordinates.initial(**kept, log_support=jnp.asarray(s))
+                     for s in (theta_c.log_support, *grid)), key=loss)
         x, convergence = minimise(
             objective, start, settings.calibration_steps, settings.tolerance,
             f"calibrate {c.name}, refined from {r.name}'s constants (its loss {r.convergence.final_loss:.7g} "
