@@ -409,25 +409,33 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             file=stream,
         )
 
-    def nested_restart(c: Candidate, refined: Sequence[Candidate]) -> Candidate:
-        """A yielding fit that ends above its own law's rigid fit, which it contains as its limit, refined
-        once more from the rigid fit's constants with the support of the lowest loss among its own and the
-        start grid's under those constants (a knee carried above every impact no longer moves the loss,
-        so it stays there); the lower of the two fits is kept."""
-        r = next((r for r in refined if not r.yields and r.law == c.law), None)
-        if not c.yields or r is None or r.convergence.final_loss >= c.convergence.final_loss:
+    def support_restart(c: Candidate, refined: Sequence[Candidate]) -> Candidate:
+        """A yielding fit refined once more from the support of the lowest loss on the start grid, under
+        its own constants and, where it ended above its own law's rigid fit (which it contains as its
+        limit), under the rigid fit's with its own support too; the lower of the two fits is kept. The
+        knee and the span move the loss only through the impacts above the knee: a knee carried above
+        every impact, or a span on a flat stretch, stays where the loss no longer moves it."""
+        if not c.yields:
             return c
-        theta_r, theta_c = r.coordinates.theta(r.x), c.coordinates.theta(c.x)
-        kept = {"log_f0": theta_r.log_f0, "log_q": theta_r.log_q, "effects": theta_r.effects}
-        screened_model = stage1_model_and_noise(theta_r, law_model(screening(c.law)), screen_noise, scales)
-        grid = support_starts(config.law, *screened_model, h, screened_records(screen_batch))
+        theta_c = c.coordinates.theta(c.x)
+        r = next((r for r in refined if not r.yields and r.law == c.law), None)
+        below = r is not None and r.convergence.final_loss < c.convergence.final_loss
         objective, loss, _ = problem(c.law, chunks, c.coordinates)
-        start = min((c.coordinates.initial(**kept, log_support=jnp.asarray(s))
-                     for s in (theta_c.log_support, *grid)), key=loss)
+        starts = []
+        for theta in (theta_c, r.coordinates.theta(r.x)) if below else (theta_c,):
+            screened_model = stage1_model_and_noise(theta, law_model(screening(c.law)), screen_noise, scales)
+            grid = support_starts(config.law, *screened_model, h, screened_records(screen_batch))
+            own = [theta_c.log_support] if theta is not theta_c else []
+            kept = {"log_f0": theta.log_f0, "log_q": theta.log_q, "effects": theta.effects}
+            starts += [c.coordinates.initial(**kept, log_support=jnp.asarray(s)) for s in (*own, *grid)]
+        start_loss, start = min(((loss(x), x) for x in starts), key=lambda pair: pair[0])
+        if start_loss >= c.convergence.final_loss:
+            return c
+        constants = f"its own or {r.name}'s constants" if below else "its own constants"
         x, convergence = minimise(
             objective, start, settings.calibration_steps, settings.tolerance,
-            f"calibrate {c.name}, refined from {r.name}'s constants (its loss {r.convergence.final_loss:.7g} "
-            f"below {c.convergence.final_loss:.7g})", stream, describe, bounds=c.coordinates.bounds(scales),
+            f"calibrate {c.name}, refined from the support grid under {constants} (its loss {start_loss:.7g} "
+            f"there, below {c.convergence.final_loss:.7g})", stream, describe, bounds=c.coordinates.bounds(scales),
         )
         if not convergence.converged or convergence.final_loss >= c.convergence.final_loss:
             return c
@@ -481,7 +489,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         score = criterion(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
         refined.append(c._replace(score=score, x=x, convergence=convergence))
     if thorough:
-        refined = [nested_restart(c, refined) for c in refined]
+        refined = [support_restart(c, refined) for c in refined]
     refined.sort(key=lambda c: c.score)
     best = undecided_support(refined)
     if len(refined) > 1:
