@@ -80,6 +80,8 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     position = np.asarray(smoothed.state)[:, :3]
     measured = result.estimate.measured
     force_cov = getattr(smoothed, "force_cov", None)
+    force_cov = None if force_cov is None else np.asarray(force_cov)
+    in_contact = (np.linalg.norm(true_force, axis=1) > 0.0) | (np.linalg.norm(force, axis=1) > 0.0)
     return {
         **_peak_anatomy({"axial": (force[:, 2], true_force[:, 2]), "radial": (radial, true_radial)}, result.summary),
         "peak_axial_error_percent": 100.0 * relative_peak_error(force[:, 2], true_force[:, 2]),
@@ -89,14 +91,9 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "velocity_band_coverage_percent": _coverage(
             np.asarray(smoothed.state)[:, 4:7], np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
-        "force_band_coverage_percent": _coverage(
-            force, None if force_cov is None else np.asarray(force_cov), true_force
-        ),
+        "force_band_coverage_percent": _coverage(force, force_cov, true_force),
         # out of contact the estimate and the truth are both 0 with a 0 band, which counts as covered
-        "force_band_coverage_in_contact_percent": _coverage(
-            force, None if force_cov is None else np.asarray(force_cov), true_force,
-            (np.linalg.norm(true_force, axis=1) > 0.0) | (np.linalg.norm(force, axis=1) > 0.0),
-        ),
+        "force_band_coverage_in_contact_percent": _coverage(force, force_cov, true_force, in_contact),
     }
 
 
