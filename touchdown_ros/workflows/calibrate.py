@@ -299,20 +299,29 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             coordinates.initial(log_f0=guess_log),
         )
 
+    def support_grid(law: ContactLaw, theta: Stage1, records: Batch) -> list[np.ndarray]:
+        """ln preload and ln span (N) where a yielding support of `law` may start under theta's constants
+        (`support_starts` on the screening's model of `records`); none without axial contact."""
+        screened_model = stage1_model_and_noise(theta, law_model(screening(law)), screen_noise, scales)
+        return support_starts(config.law, *screened_model, h, screened_records(records))
+
+    def with_support_at(coordinates: Coordinates, theta: Stage1, log_support) -> np.ndarray:
+        """The free coordinates of theta's constants (f0, Q, effects) with the support `log_support`."""
+        return coordinates.initial(log_f0=theta.log_f0, log_q=theta.log_q, effects=theta.effects,
+                                   log_support=jnp.asarray(log_support))
+
     def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
         """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
         from the rigid fit theta_rigid: the best of a grid of supports, then all coordinates
         together; None without axial contact."""
-        screened_model = stage1_model_and_noise(theta_rigid, law_model(screening(law)), screen_noise, scales)
-        starts = support_starts(config.law, *screened_model, h, screened_records(records))
+        starts = support_grid(law, theta_rigid, records)
         if not starts:
             return None
         with_support = Coordinates(
             start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True)
         )
         supported = problem(law, (records,), with_support, screened=True)
-        kept = {"log_f0": theta_rigid.log_f0, "log_q": theta_rigid.log_q, "effects": theta_rigid.effects}
-        x0 = min((with_support.initial(**kept, log_support=jnp.asarray(s)) for s in starts), key=supported.loss)
+        x0 = min((with_support_at(with_support, theta_rigid, s) for s in starts), key=supported.loss)
         x, convergence = minimise(
             supported.objective, x0, settings.calibration_steps, tolerance, label, stream, describe,
             bounds=with_support.bounds(scales),
@@ -423,11 +432,9 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         objective, loss, _ = problem(c.law, chunks, c.coordinates)
         starts = []
         for theta in (theta_c, r.coordinates.theta(r.x)) if below else (theta_c,):
-            screened_model = stage1_model_and_noise(theta, law_model(screening(c.law)), screen_noise, scales)
-            grid = support_starts(config.law, *screened_model, h, screened_records(screen_batch))
             own = [theta_c.log_support] if theta is not theta_c else []
-            kept = {"log_f0": theta.log_f0, "log_q": theta.log_q, "effects": theta.effects}
-            starts += [c.coordinates.initial(**kept, log_support=jnp.asarray(s)) for s in (*own, *grid)]
+            grid = support_grid(c.law, theta, screen_batch)
+            starts += [with_support_at(c.coordinates, theta, s) for s in (*own, *grid)]
         start_loss, start = min(((loss(x), x) for x in starts), key=lambda pair: pair[0])
         if start_loss >= c.convergence.final_loss:
             return c
