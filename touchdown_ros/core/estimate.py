@@ -152,7 +152,9 @@ def initial_belief(etas: np.ndarray, initial_cov: np.ndarray, samples: int = 5) 
 def force_model_variance(model: Model, noise: FilterNoise, sample_period: float) -> Array:
     """(3,) N^2 per sensor axis: the variance of the contact force the model itself leaves out,
     the process noise on the velocities read as a force, m^2 Q_v / h^2 (the filter's own
-    account of its acceleration error; Q as the training fitted it)."""
+    account of its acceleration error over one sample). Where no better figure is known: a
+    coefficient file carries the one measured on its training bags (`core.smoothing.missing_force_squares`),
+    which this one overstates several times (the white noise of a sample is not a smooth model error)."""
     return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
@@ -231,8 +233,13 @@ Estimator = Callable[..., Estimate]
 PAD_BUCKET = 512
 
 
-def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Estimator:
+def make_estimator(
+    model: Model, noise: FilterNoise, sample_period: float, model_variance: np.ndarray | None = None
+) -> Estimator:
     """Compile the filter + smoother for one model; the returned function estimates many records.
+
+    `model_variance` (3,) N^2: the model's own force error in contact, added to the force band
+    (default `force_model_variance`).
 
     The model is closed over so its constants fold at compile time (about 1.4x faster
     than passing it as an argument); compilation happens once per record length.
@@ -245,10 +252,10 @@ def make_estimator(model: Model, noise: FilterNoise, sample_period: float) -> Es
         outputs: StepOutput = ekf(model, noise, sample_period, initial, etas)
         smoothed = rts_smoother(outputs)
         nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
-        model_variance = force_model_variance(model, noise, sample_period)
+        variance = force_model_variance(model, noise, sample_period) if model_variance is None else model_variance
         return (
-            signals(model, outputs.filtered, model_variance),
-            signals(model, smoothed, model_variance),
+            signals(model, outputs.filtered, variance),
+            signals(model, smoothed, variance),
             jax.vmap(lambda xi: measurement(model, xi))(outputs.prior.mean),
             outputs.innovation,
             outputs.innovation_cov,

@@ -21,9 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from touchdown_ros.core.dynamics import contact_forces, rk4_step
 from touchdown_ros.core.ekf import Belief, Measurement, ekf, inverse_and_det_3x3, model_measurement, rts_smoother
 from touchdown_ros.core.training import Batch
-from touchdown_ros.core.types import OUTPUT_SIZE, FilterNoise, Model
+from touchdown_ros.core.types import OUTPUT_SIZE, VELOCITY, FilterNoise, Model
 
 
 def leave_one_out_residuals(measure: Measurement, smoothed: Belief, etas: Array, R: Array) -> Array:
@@ -52,6 +53,38 @@ def leave_one_out_squares(model: Model, noise: FilterNoise, h: float, batch: Bat
         return jnp.where(valid, jnp.sum(residuals * residuals, axis=1), 0.0)
 
     return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+
+
+@jax.jit
+def missing_force_squares(model: Model, noise: FilterNoise, h: float, batch: Batch) -> tuple[Array, Array]:
+    """The force the smoother adds to the model to follow the displacements: per record and sample,
+    (m w_k / h)^2 per axis (N^2), w_k the velocity part of xi_{k+1|N} - f(xi_{k|N}) (f the filter's RK4
+    step), and where it counts: k and k + 1 valid and the model in contact at xi_{k|N} ((records, N, 3),
+    (records, N) bool; the last sample never counts).
+
+    Its mean over the counted samples is the model's own force error in contact at the resolution the
+    displacements support: `force_model_variance`'s m^2 Q_v / h^2 reads the white process noise of a
+    single sample as a force, which the data cannot resolve and a smooth model error does not have."""
+
+    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> tuple[Array, Array]:
+        gated = model._replace(effects=model.effects.with_gates(gates))
+        smoothed = rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas)).mean
+        predicted = jax.vmap(lambda xi: rk4_step(gated, xi, h))(smoothed[:-1])
+        force = gated.rig.mass * (smoothed[1:] - predicted)[:, VELOCITY] / h
+        forces = jax.vmap(lambda xi: contact_forces(gated, xi))(smoothed[:-1])
+        counted = valid[:-1] & valid[1:] & (forces.radial_contact | forces.axial_contact)
+        pad = jnp.zeros((1, 3), force.dtype)
+        return jnp.concatenate([force * force, pad]), jnp.append(counted, False)
+
+    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+
+
+def mean_missing_force_variance(squares: Array, counted: Array) -> np.ndarray | None:
+    """(3,) N^2: the mean of `missing_force_squares`' squares over its counted samples; None if none count."""
+    counted = np.asarray(counted, dtype=bool)
+    if not counted.any():
+        return None
+    return np.asarray(squares)[counted].mean(axis=0)
 
 
 #: Samples per block for the standard error of a mean over records (10 ms at 10 kHz). The smoothed

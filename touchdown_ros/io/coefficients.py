@@ -137,6 +137,10 @@ def save_coefficients(
             "initial_covariance": np.asarray(config.noise.initial, dtype=float).tolist(),
             # factor on process_noise for the offline (smoothed) estimate; the live node filters with it as it is
             "smoothing_noise_scale": float(config.smoothing_noise_scale),
+            # N^2 per axis, the model's own force error in contact on the training bags (the force band's);
+            # absent: m^2 Q_v / h^2
+            **({"force_model_variance": [float(v) for v in config.force_model_variance]}
+               if config.force_model_variance is not None else {}),
         },
         "coefficients": {
             "units": "dimensionless, relative to each nominal value: p(s) = f0 * (1 + Q(s, T) alpha)",
@@ -363,7 +367,13 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
     scale = document["filter"].get("smoothing_noise_scale", 1.0)  # files before it: Q as it is
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) or scale <= 0:
         raise CoefficientFileError(f"{path}: filter.smoothing_noise_scale must be a number > 0, got {scale!r}")
-    return config.calibrated(Nominal(*values), law, kernel, noise, float(scale))
+    variance = None
+    if "force_model_variance" in document["filter"]:  # files before it: m^2 Q_v / h^2
+        array = _array(path, document, "filter.force_model_variance", (3,))
+        if (array < 0.0).any():
+            raise CoefficientFileError(f"{path}: filter.force_model_variance must be 3 numbers >= 0 (N^2 per axis)")
+        variance = tuple(float(v) for v in array)
+    return config.calibrated(Nominal(*values), law, kernel, noise, float(scale), variance)
 
 
 def _load_effects(path: Path, table: Any) -> Effects:

@@ -146,6 +146,9 @@ class Config:
     topics: Topics
     training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
     smoothing_noise_scale: float = 1.0  # factor on Q of the offline estimate (a coefficient file's, `offline_noise`)
+    # N^2 per axis: the model's own force error in contact, measured on the training bags (a coefficient
+    # file's, `core.smoothing.missing_force_squares`); None: m^2 Q_v / h^2 (`core.estimate.force_model_variance`)
+    force_model_variance: tuple[float, float, float] | None = None
     law: ContactLaw = field(default_factory=ContactLaw)  # contact.law / contact.exponent
     training: TrainingSettings = field(default_factory=TrainingSettings)
     simulator: Mapping[str, Any] = field(default_factory=dict)
@@ -209,17 +212,30 @@ class Config:
         return {"rig": dict(self.rig._asdict()), "sample_period": self.sample_period}
 
     def calibrated(
-        self, nominal: Nominal, law: ContactLaw, kernel: Kernel, noise: FilterNoise, smoothing_noise_scale: float = 1.0
+        self,
+        nominal: Nominal,
+        law: ContactLaw,
+        kernel: Kernel,
+        noise: FilterNoise,
+        smoothing_noise_scale: float = 1.0,
+        force_model_variance: tuple[float, float, float] | None = None,
     ) -> "Config":
-        """This rig with identified contact constants, law, kernel and filter noise (a coefficient file's)."""
+        """This rig with identified contact constants, law, kernel, filter noise and the model's force
+        error (a coefficient file's)."""
         if not len(noise.process) == len(noise.initial) == law.state_size:
             raise ValueError(
                 f"contact.friction {law.friction} has a state of {law.state_size}, the filter noise "
                 f"{len(noise.process)} (Q) and {len(noise.initial)} (P_0)"
             )
         return replace(
-            self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale
+            self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale,
+            force_model_variance=force_model_variance,
         )
+
+    def model_variance(self) -> np.ndarray | None:
+        """(3,) N^2 the force band adds in contact: the coefficient file's measured one, else None (the
+        estimators then read the process noise as a force, `core.estimate.force_model_variance`)."""
+        return None if self.force_model_variance is None else np.asarray(self.force_model_variance, dtype=float)
 
 
 def reference_rig_path() -> Path:

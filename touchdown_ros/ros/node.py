@@ -83,7 +83,9 @@ class EstimatorNode(Node):
         if notes := self.model_info.values.get("calibration_notes"):
             logger.info(f"calibration notes of the coefficient file: {notes}")
         settings = self.config.stream_settings()
-        self.estimator = StreamingEstimator(model, self.config.noise, settings)
+        self.estimator = StreamingEstimator(
+            model, self.config.noise, settings, model_variance=self.config.model_variance()
+        )
         # Before warm_up and the worker start: threads created later inherit the policy.
         self.scheduling, refused = set_realtime_scheduling(node.realtime_priority)
         if refused:

@@ -78,9 +78,10 @@ def estimator_for(
     """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
     effects unless others, e.g. a coefficient file's, are given) for the `answer` it is read for:
     the smoothed one with the offline process noise (`Config.offline_noise`), the filtered one with
-    the fitted Q, as the live node filters."""
+    the fitted Q, as the live node filters. The force band adds the coefficient file's measured model
+    force error in contact (`Config.model_variance`), else the process noise read as a force."""
     noise = config.offline_noise() if check_answer(answer) == SMOOTHED else config.noise
-    return make_estimator(config.model(coeffs, effects), noise, config.sample_period)
+    return make_estimator(config.model(coeffs, effects), noise, config.sample_period, config.model_variance())
 
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:

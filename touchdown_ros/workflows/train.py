@@ -28,7 +28,12 @@ from touchdown_ros.core.calibration import (
 )
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.pkbkr import Whitening, coloured, whitened, whitening
-from touchdown_ros.core.smoothing import leave_one_out_squares, mean_fall_and_standard_error
+from touchdown_ros.core.smoothing import (
+    leave_one_out_squares,
+    mean_fall_and_standard_error,
+    mean_missing_force_variance,
+    missing_force_squares,
+)
 from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
 from touchdown_ros.core.types import OUTPUT_SIZE, Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
@@ -129,9 +134,11 @@ def stage2_problem(config: Config, data: TrainingData, initial: Trainable, lengt
     return Stage2Problem(np.asarray(theta0, dtype=float), unravel, scales, batch, w)
 
 
-#: `Ahead` names of stage 2's program (`stage2_value_and_grad`) and the smoothing noise's (`leave_one_out_squares`).
+#: `Ahead` names of stage 2's program (`stage2_value_and_grad`), the smoothing noise's (`leave_one_out_squares`)
+#: and the model's force error's (`missing_force_squares`).
 STAGE2_PROGRAM = "stage 2"
 SMOOTHING_PROGRAM = "the smoothing noise's cross-validation"
+MISSING_FORCE_PROGRAM = "the model's force error"
 
 
 def compile_stage2_ahead(ahead: Ahead, config: Config, data: TrainingData) -> None:
@@ -143,9 +150,12 @@ def compile_stage2_ahead(ahead: Ahead, config: Config, data: TrainingData) -> No
     problem = stage2_problem(shaped, data, Trainable(Coefficients.zeros(kernel), config.effects))
     objective = make_objective(shaped)
     ahead.compile(STAGE2_PROGRAM, objective.func, *problem.arguments(problem.theta0, 1.0), **objective.keywords)
+    batch = training_batch(shaped, data, config.effects)
     if config.training.smoothing_noise == "cross_validation":
         ahead.compile(SMOOTHING_PROGRAM, leave_one_out_squares, objective.keywords["model"],
-                      strongly_typed(config.noise), config.sample_period, training_batch(shaped, data, config.effects))
+                      strongly_typed(config.noise), config.sample_period, batch)
+    ahead.compile(MISSING_FORCE_PROGRAM, missing_force_squares, objective.keywords["model"],
+                  strongly_typed(config.noise), config.sample_period, batch)
 
 
 def fit(
@@ -406,6 +416,35 @@ def choose_smoothing_scale(
     return SmoothingScale(scale, at_one, best, how, fall, standard_error)
 
 
+class ModelForceError(NamedTuple):
+    """The model's own force error in contact on the training records (`core.smoothing.missing_force_squares`)."""
+
+    variance: tuple[float, float, float] | None  # N^2 per axis; None: no sample in contact
+    samples: int  # samples counted (in contact, with the next sample present)
+
+    def as_dict(self) -> dict:
+        rms = None if self.variance is None else [round(float(np.sqrt(v)), 1) for v in self.variance]
+        return {
+            "rms_N": rms,
+            "samples": self.samples,
+            "how": "the force the smoothed estimate adds to the model in contact on the training bags, "
+                   "m (v_{k+1|N} - f(xi_{k|N}))_v / h, its mean square per axis: filter.force_model_variance",
+        }
+
+
+def model_force_error(model: Model, noise: FilterNoise, h: float, batch: Batch, stream=STDERR) -> ModelForceError:
+    """The model's own force error in contact on the training records, with the offline estimate's `noise`,
+    for the force band (`Config.force_model_variance`), with progress."""
+    squares, counted = missing_force_squares(strongly_typed(model), strongly_typed(noise), h, batch)
+    variance = mean_missing_force_variance(squares, counted)
+    error = ModelForceError(None if variance is None else tuple(float(v) for v in variance), int(np.sum(counted)))
+    said = "none in contact: the band reads Q as a force" if variance is None else \
+        "rms " + " / ".join(f"{v:.0f}" for v in np.sqrt(variance)) + " N (x / y / z)"
+    print(f"[force band] the model's own force error in contact on {error.samples} training samples: {said}",
+          file=stream, flush=True)
+    return error
+
+
 def train(
     config: Config,
     bags: Sequence[str | Path],
@@ -518,6 +557,9 @@ def _train(
         calibrated = replace(calibrated, smoothing_noise_scale=smoothing.scale)
     else:
         smoothing = SmoothingScale(1.0, None, None, "likelihood: the fitted Q as it is")
+    ahead.wait(MISSING_FORCE_PROGRAM)
+    force_error = model_force_error(final, calibrated.offline_noise(), config.sample_period, batch, stream)
+    calibrated = replace(calibrated, force_model_variance=force_error.variance)
     mean_nis = tuple(float(np.nanmean(row)) for row in nis)
     seconds = time.perf_counter() - start
     save_coefficients(
@@ -536,6 +578,7 @@ def _train(
             kernel_notes=notes,
             mean_nis={str(p): round(v, 3) for p, v in zip(data.paths, mean_nis)},
             smoothing_noise=smoothing.as_dict(),
+            force_model_error=force_error.as_dict(),
         ),
         result.effects,
     )

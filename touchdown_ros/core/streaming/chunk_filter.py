@@ -32,7 +32,9 @@ def prior_columns(size: int) -> tuple[slice, int]:
     return slice(0, size + size * size), size + size * size
 
 
-def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) -> ChunkFunction:
+def make_chunk_filter(
+    model: Model, noise: FilterNoise, sample_period: float, model_variance: np.ndarray | None = None
+) -> ChunkFunction:
     """Jitted `buffer (C + 1, width) -> buffer`: the EKF over C rows, one compiled loop, one array each way.
 
     In: rows 0..C-1 hold the measurements eta (m) in columns 0-2 (NaN: predict only);
@@ -52,14 +54,15 @@ def make_chunk_filter(model: Model, noise: FilterNoise, sample_period: float) ->
     small-loop option `core.xla` sets). One array each way because each argument and
     result costs dispatch time: called every 1.6 ms as the node does, a chunk of 16 rows
     takes 7-16 % less CPU than with the prior, rows and count as separate arrays
-    (bench/chunk_dispatch.py).
+    (bench/chunk_dispatch.py). `model_variance`: as `estimate.make_estimator`'s.
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
     size = len(noise.process)
     prior_slice, count_column = prior_columns(size)
     ring = model.law.spins_ring
     measure = model_measurement(model)
-    model_variance = force_model_variance(model, noise, sample_period)
+    if model_variance is None:
+        model_variance = force_model_variance(model, noise, sample_period)
 
     def row(prior: Belief, eta: Array) -> tuple[Belief, Array]:
         filtered, innovation, S, used = update(prior, eta, R, measure)

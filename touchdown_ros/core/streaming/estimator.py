@@ -37,14 +37,20 @@ class StreamingEstimator:
     """
 
     def __init__(
-        self, model: Model, noise: FilterNoise, settings: StreamSettings, chunk_filter: ChunkFunction | None = None
+        self,
+        model: Model,
+        noise: FilterNoise,
+        settings: StreamSettings,
+        chunk_filter: ChunkFunction | None = None,
+        model_variance: np.ndarray | None = None,
     ):
-        """`chunk_filter`: a `make_chunk_filter` of the same model, noise and period, to share its compilations."""
+        """`chunk_filter`: a `make_chunk_filter` of the same model, noise and period, to share its compilations;
+        `model_variance` (3,) N^2: the model's own force error in contact (`make_chunk_filter`'s)."""
         if not settings.chunk_sizes or min(settings.chunk_sizes) < 1:
             raise ValueError("chunk_sizes must be positive lengths")
         self.model, self.noise, self.settings = model, noise, settings
         self._sizes = tuple(sorted(set(int(c) for c in settings.chunk_sizes)))
-        self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period)
+        self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period, model_variance)
         self._initial_cov = np.asarray(noise.initial)
         self.counts = StreamCounts()
         self._grid = StampGrid(settings.policy, settings.resync_after, self.counts)
