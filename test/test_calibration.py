@@ -554,6 +554,10 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     # a factor other than 1 only for a fall of the squared residual beyond its standard error
     fall = smoothing["best_factor_fall_um2"]
     assert scale == 1.0 or fall["mean"] > fall["standard_error"], smoothing
+    # the force band's model error: measured in contact on the training bags, recorded with its sample count
+    variance, error = document["filter"]["force_model_variance"], document["training"]["force_model_error"]
+    assert len(variance) == 3 and min(variance) >= 0.0 and error["samples"] > 100, error
+    np.testing.assert_allclose(error["rms_N"], np.sqrt(variance), rtol=1e-3, atol=0.1)
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth

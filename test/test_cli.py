@@ -228,13 +228,14 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
 
 def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):
     """Stage 1's loss alone (for the support's start grid and the restarts), stage 2's program, stage 1's
-    standard errors' and the smoothing noise's are compiled in the background thread from the rig YAML's
-    shapes while stage 1 compiles and runs, before it has calibrated the values they are later called with
-    (other constants, centres placed on the data): the calls find them and compile nothing again."""
+    standard errors', the smoothing noise's and the model's force error's are compiled in the background
+    thread from the rig YAML's shapes while stage 1 compiles and runs, before it has calibrated the values
+    they are later called with (other constants, centres placed on the data): the calls find them and
+    compile nothing again."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
     watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_information)",
-               "jit(leave_one_out_squares)"}
+               "jit(leave_one_out_squares)", "jit(missing_force_squares)"}
     # records of 430 samples: a shape no other test compiles these programs for in this process
     code, compiled = compilations(watched, lambda: main([
         "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),

@@ -165,6 +165,37 @@ def test_file_carries_the_smoothing_noise_scale_and_the_offline_estimate_uses_it
             load_coefficients(path, CONFIG)
 
 
+def test_file_carries_the_models_force_error_and_the_force_band_adds_it_in_contact(tmp_path):
+    """filter.force_model_variance (N^2 per axis, measured by the trainer) is what the force band adds in
+    contact, offline and for the node's filtered answer, in place of m^2 Q_v / h^2; a file without it keeps
+    the latter; a bad one is refused."""
+    variance = (4.0e4, 9.0e4, 2.5e3)
+    calibrated = CONFIG.calibrated(CONFIG.nominal, CONFIG.law, CONFIG.kernel, CONFIG.noise, 1.0, variance)
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
+    loaded = load_coefficients(path, CONFIG).config(CONFIG)
+    np.testing.assert_array_equal(loaded.model_variance(), variance)
+    resting = np.tile([0.0, 0.0, -CONFIG.rig.axial_clearance - 2e-5], (200, 1))  # on the axial bearing
+    stamps = np.arange(200) * int(CONFIG.sample_period * 1e9)
+    q_as_force = CONFIG.rig.mass**2 * np.asarray(CONFIG.noise.process)[4:7] / CONFIG.sample_period**2
+    for answer in ("smoothed", "filtered"):
+        with_file = getattr(estimator_for(loaded, answer=answer)(stamps, resting), answer)
+        without = getattr(estimator_for(CONFIG, answer=answer)(stamps, resting), answer)
+        contact = np.asarray(with_file.axial_contact)
+        assert contact[20:].all()
+        added = np.diagonal(np.asarray(with_file.force_cov) - np.asarray(without.force_cov), axis1=1, axis2=2)
+        expected = np.broadcast_to(np.subtract(variance, q_as_force), added[contact].shape)
+        np.testing.assert_allclose(added[contact], expected, rtol=1e-6, atol=1e-6 * max(variance))
+    document = yaml.safe_load(path.read_text())
+    del document["filter"]["force_model_variance"]
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert load_coefficients(path, CONFIG).config(CONFIG).model_variance() is None
+    for bad in ([1.0, 2.0], [1.0, -2.0, 3.0], [1.0, float("nan"), 3.0], "x"):
+        document["filter"]["force_model_variance"] = bad
+        path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=r"filter\.force_model_variance must be"):
+            load_coefficients(path, CONFIG)
+
+
 def test_other_rig_is_refused_naming_the_difference(tmp_path):
     path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), CONFIG, TrainingRecord())
     other = load_config(reference_rig_path(), overrides={"rig.mass": 250.0, "sensor.sample_period": 2.0e-4})
