@@ -558,6 +558,7 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     variance, error = document["filter"]["force_model_variance"], document["training"]["force_model_error"]
     assert len(variance) == 3 and min(variance) >= 0.0 and error["samples"] > 100, error
     np.testing.assert_allclose(error["rms_N"], np.sqrt(variance), rtol=1e-3, atol=0.1)
+    assert summary["force_band_model_error"].startswith(f"rms {np.sqrt(variance[0]):.0f} / ")  # estimate says so
     bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
     truth = bag["truth"]
     assert abs(truth["peak_axial_force_error"]) < PEAK_TOLERANCE, truth

@@ -99,6 +99,8 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     assert f"**{'RTS smoother' if answer == 'smoothed' else 'EKF'} ({answer})**" in (out / "summary.md").read_text()
     noise = "the fitted Q x 1 (filter.smoothing_noise_scale)" if answer == "smoothed" else "the fitted Q, as the live"
     assert f"Process noise: {noise}" in (out / "summary.md").read_text()
+    # the constant model has no measured model error: the band reads the process noise as a force, and says so
+    assert "model error in contact: the process noise read as a force" in (out / "summary.md").read_text()
 
 
 def test_estimate_with_a_spinning_ring_writes_the_rings_speed_and_the_papers_friction_does_not(

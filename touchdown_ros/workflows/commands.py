@@ -8,6 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from touchdown_ros.io.coefficients import CoefficientFile, load_coefficients
 from touchdown_ros.io.config import Config
 from touchdown_ros.sim.bags import write_drop_bag
@@ -134,9 +136,19 @@ def estimate_bags(
                     if answer == SMOOTHED
                     else "the fitted Q, as the live node's"
                 ),
+                "force_band_model_error": force_band_source(config),
             },
         )
     return results
+
+
+def force_band_source(config: Config) -> str:
+    """In words: what the force band adds in contact for the model's own error (`Config.model_variance`)."""
+    variance = config.model_variance()
+    if variance is None:
+        return "the process noise read as a force, m^2 Q_v / h^2 (no filter.force_model_variance)"
+    rms = " / ".join(f"{v:.0f}" for v in np.sqrt(variance))
+    return f"rms {rms} N (x / y / z), measured on the training bags (filter.force_model_variance)"
 
 
 def train_bags(

@@ -79,10 +79,14 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
 
 
 def summary_table(
-    results: Sequence[BagEstimate], process_noise: str | None = None, notes: Sequence[str] = ()
+    results: Sequence[BagEstimate],
+    process_noise: str | None = None,
+    notes: Sequence[str] = (),
+    force_band: str | None = None,
 ) -> str:
-    """Markdown: which estimate the figures are of (and with which process noise), what the calibration
-    said the bags left open (`notes`, the coefficient file's), then a table of the per-bag summaries."""
+    """Markdown: which estimate the figures are of (and with which process noise and model error in the force
+    band), what the calibration said the bags left open (`notes`, the coefficient file's), then a table of
+    the per-bag summaries."""
     answers = sorted({result.answer for result in results})
     which = " and ".join(f"{ANSWER_LABELS[a]} ({a})" for a in answers)
     intro = (
@@ -90,6 +94,7 @@ def summary_table(
         "(`--filtered`) only the samples up to each one, as the live node does. sigma: 1-sigma of the "
         "contact force, linearised through the estimate's covariance."
         + (f" Process noise: {process_noise}." if process_noise else "")
+        + (f" The force band's model error in contact: {force_band}." if force_band else "")
         + "\n\n"
         + "".join(f"- Calibration: {note}\n" for note in notes)
         + ("\n" if notes else "")
@@ -147,5 +152,7 @@ def write_summaries(results: Sequence[BagEstimate], out: Path, extra: dict[str, 
     document = {"bags": {str(r.path): r.summary for r in results}, **extra}
     (out / "summary.json").write_text(json.dumps(document, indent=2))
     (out / "summary.md").write_text(
-        summary_table(results, extra.get("process_noise"), extra.get("calibration_notes", ()))
+        summary_table(
+            results, extra.get("process_noise"), extra.get("calibration_notes", ()), extra.get("force_band_model_error")
+        )
     )
