@@ -94,6 +94,10 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "force_band_coverage_percent": _coverage(force, force_cov, true_force),
         # out of contact the estimate and the truth are both 0 with a 0 band, which counts as covered
         "force_band_coverage_in_contact_percent": _coverage(force, force_cov, true_force, in_contact),
+        # per axis x / y / z: the axial band is the one impacts stretch (docs/calibration.md)
+        "force_band_coverage_in_contact_per_axis_percent": None if force_cov is None else [
+            _coverage(force[:, [i]], force_cov[:, [i]][:, :, [i]], true_force[:, [i]], in_contact) for i in range(3)
+        ],
     }
 
 
