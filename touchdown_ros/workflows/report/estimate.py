@@ -73,7 +73,7 @@ def plot_estimate(result: BagEstimate, out: Path) -> list[Path]:
         ax.set_ylabel(f"{quantity} / kN")
         ax.legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time after drop onset / s")
-    fig.suptitle(f"{name}: contact force ({label}; band: $\\pm 2\\sigma$ linearised through the state covariance)")
+    fig.suptitle(f"{name}: contact force ({label}; band: $\\pm 2\\sigma$, state covariance and model error)")
     written_files.append(save(fig, out / "contact_force.png"))
     return written_files
 
@@ -92,7 +92,7 @@ def summary_table(
     intro = (
         f"Estimate written and summarised: **{which}**. The RTS smoother uses the whole record; the EKF "
         "(`--filtered`) only the samples up to each one, as the live node does. sigma: 1-sigma of the "
-        "contact force, linearised through the estimate's covariance."
+        "contact force, linearised through the estimate's covariance, plus the model's own error in contact."
         + (f" Process noise: {process_noise}." if process_noise else "")
         + (f" The force band's model error in contact: {force_band}." if force_band else "")
         + "\n\n"
