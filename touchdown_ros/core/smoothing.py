@@ -16,6 +16,8 @@ cross-validation does for smoothing splines.
 """
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,19 +42,30 @@ def leave_one_out_residuals(measure: Measurement, smoothed: Belief, etas: Array,
     return jax.vmap(one)(smoothed.mean, smoothed.cov, etas)
 
 
+def over_smoothed_records(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, measure: Callable[[Model, Belief, Array, Array], Any]
+) -> Any:
+    """`measure(gated model, smoothed beliefs, etas, valid)` of every record of the batch, stacked: filter and
+    smoother of each record with `noise`, the model with the record's effects' gates."""
+
+    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> Any:
+        gated = model._replace(effects=model.effects.with_gates(gates))
+        return measure(gated, rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas)), etas, valid)
+
+    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+
+
 @jax.jit
 def leave_one_out_squares(model: Model, noise: FilterNoise, h: float, batch: Batch) -> Array:
     """(records, N) m^2: each sample's squared leave-one-out residual, summed over the axes, 0 where the
     sample is not valid: filter and smoother of every record with `noise`, each with its effects' gates."""
     R = jnp.diag(noise.measurement)
 
-    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> Array:
-        gated = model._replace(effects=model.effects.with_gates(gates))
-        smoothed = rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas))
+    def squares(gated: Model, smoothed: Belief, etas: Array, valid: Array) -> Array:
         residuals = leave_one_out_residuals(model_measurement(gated), smoothed, etas, R)
         return jnp.where(valid, jnp.sum(residuals * residuals, axis=1), 0.0)
 
-    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+    return over_smoothed_records(model, noise, h, batch, squares)
 
 
 @jax.jit
@@ -66,9 +79,8 @@ def missing_force_squares(model: Model, noise: FilterNoise, h: float, batch: Bat
     displacements support: `force_model_variance`'s m^2 Q_v / h^2 reads the white process noise of a
     single sample as a force, which the data cannot resolve and a smooth model error does not have."""
 
-    def one(etas: Array, mean: Array, cov: Array, gates: Array, valid: Array) -> tuple[Array, Array]:
-        gated = model._replace(effects=model.effects.with_gates(gates))
-        smoothed = rts_smoother(ekf(gated, noise, h, Belief(mean, cov), etas)).mean
+    def squares(gated: Model, belief: Belief, etas: Array, valid: Array) -> tuple[Array, Array]:
+        smoothed = belief.mean
         predicted = jax.vmap(lambda xi: rk4_step(gated, xi, h))(smoothed[:-1])
         force = gated.rig.mass * (smoothed[1:] - predicted)[:, VELOCITY] / h
         forces = jax.vmap(lambda xi: contact_forces(gated, xi))(smoothed[:-1])
@@ -76,7 +88,7 @@ def missing_force_squares(model: Model, noise: FilterNoise, h: float, batch: Bat
         pad = jnp.zeros((1, 3), force.dtype)
         return jnp.concatenate([force * force, pad]), jnp.append(counted, False)
 
-    return jax.vmap(one)(batch.etas, batch.initial_mean, batch.initial_cov, batch.gates, batch.valid)
+    return over_smoothed_records(model, noise, h, batch, squares)
 
 
 def mean_missing_force_variance(squares: Array, counted: Array) -> np.ndarray | None:
