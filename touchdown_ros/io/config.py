@@ -66,6 +66,9 @@ class TrainingSettings:
     # stage-1 candidate contact laws ("linear", "hertz:<n>", "kelvin_voigt:<n>"); the data choose;
     # empty: contact.law only
     contact_laws: tuple[ContactLaw, ...] = ()
+    # stage-1 candidate friction models (FRICTION_MODELS): each is calibrated, the data choose; empty:
+    # contact.friction only
+    friction_models: tuple[str, ...] = ()
     prior_width: float = 1.6  # sd of ln f0 around the guess (ln 5: a guess 5x off is one sd)
     reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
     placement: str = "data"  # kernel centres: data (from the calibrated estimates) | fixed (kernel.* grid)
@@ -231,6 +234,22 @@ class Config:
             self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale,
             force_model_variance=force_model_variance,
         )
+
+    def with_friction(self, friction: str) -> "Config":
+        """This rig with contact.friction `friction` (one of FRICTION_MODELS) in its law and its candidate laws;
+        the filter noise follows the state (a spinning ring's speed is an eighth state, with the YAML's
+        filter.ring_process_noise and ring_initial_covariance)."""
+        law = self.law.with_friction(friction, self.law.slip_velocity)
+        ring = (
+            [self.parameters.get("filter.ring_process_noise", RING_PROCESS_NOISE)],
+            [self.parameters.get("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE)],
+        ) if law.spins_ring else ([], [])
+        noise = self.noise._replace(
+            process=np.append(np.asarray(self.noise.process)[:STATE_SIZE], ring[0]),
+            initial=np.append(np.asarray(self.noise.initial)[:STATE_SIZE], ring[1]),
+        )
+        laws = tuple(c.with_friction(friction, c.slip_velocity) for c in self.training.contact_laws)
+        return replace(self, law=law, noise=noise, training=replace(self.training, contact_laws=laws))
 
     def model_variance(self) -> np.ndarray | None:
         """(3,) N^2 the force band adds in contact: the coefficient file's measured one, else None (the
@@ -430,6 +449,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
     return TrainingSettings(
         loss=read.choice("training.loss", d.loss, LOSSES),
         contact_laws=candidates or (law,),
+        friction_models=_friction_models(read),
         prior_width=read.number("training.prior_width", d.prior_width, positive=True),
         reference_deformation=read.number("training.reference_deformation", d.reference_deformation, positive=True),
         placement=read.choice("kernel.placement", d.placement, PLACEMENTS),
@@ -444,6 +464,18 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
     )
+
+
+def _friction_models(read: ParameterReader) -> tuple[str, ...]:
+    """training.friction_models: the friction models stage 1 calibrates in turn for the data to choose."""
+    key = "training.friction_models"
+    models = read._get(key, [])
+    if not isinstance(models, list) or not all(isinstance(v, str) for v in models):
+        raise ConfigError(f"{read.source}: parameter '{key}' must be a list such as [paper, spinning_ring]")
+    unknown = [m for m in models if m not in FRICTION_MODELS]
+    if unknown:
+        raise ConfigError(f"{read.source}: {key}: {unknown[0]!r} is not one of {', '.join(FRICTION_MODELS)}")
+    return tuple(dict.fromkeys(models))
 
 
 def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:

@@ -3,6 +3,7 @@ from displacement-only bags (core.calibration), with standard errors from the lo
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -89,6 +90,9 @@ class Calibration:
     convergence: Convergence
     candidates: tuple[dict[str, Any], ...]  # every law x support screened: label, loss, criterion above the best, steps
     sensor_noise: np.ndarray  # (3,) m, per axis, from the levitated samples
+    criterion: float = 0.0  # the chosen fit's information criterion (AIC or BIC, up to a constant of the bags)
+    # with several `training.friction_models`: each one's fit (friction, law, loss, criterion above the best, s)
+    frictions: tuple[dict[str, Any], ...] = ()
 
     def summary(self) -> dict[str, Any]:
         """Plain data for the coefficient file, with the notes `train` prints (`notes`)."""
@@ -103,6 +107,7 @@ class Calibration:
             "strongest_correlations": [[a, b, round(r, 4)] for a, b, r in self.correlations],
             "sensor_noise_m": [float(v) for v in self.sensor_noise],
             "candidates": list(self.candidates),
+            **({"friction_models": list(self.frictions)} if self.frictions else {}),
             "notes": self.notes(),
             **self.convergence.as_dict(),
         }
@@ -139,6 +144,13 @@ class Calibration:
         nominal = self.config.nominal
         if self.config.law.friction != "paper" or max(float(nominal.mu), float(nominal.k_ZR)) >= LOW_FRICTION:
             return None
+        ring = next((f for f in self.frictions if f["friction"] == "spinning_ring"), None)
+        if ring is not None:
+            return (
+                f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, far below a dry or "
+                f"boundary-lubricated contact's (from {LOW_FRICTION:g} up); a spinning ring's friction fitted these "
+                f"bags worse ({ring['criterion_above_best']:.4g} behind by the information criterion)"
+            )
         return (
             f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, far below a dry or "
             f"boundary-lubricated contact's (from {LOW_FRICTION:g} up): the paper's friction acts against the rotor's "
@@ -546,7 +558,35 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         convergence=convergence,
         candidates=candidates,
         sensor_noise=sigma,
+        criterion=best.score,
     )
+
+
+def calibrate_frictions(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
+    """Stage 1 (`calibrate`) with each of `training.friction_models` in turn, each with its own background
+    compilations; the fit of the lowest information criterion is kept, every one's listed in its `frictions`.
+    The criteria compare: the bags, their samples and the fitted coordinates are the same (a spinning ring's
+    speed is a state, not a fitted parameter), only the friction differs."""
+    fits, seconds = [], []
+    for friction in config.training.friction_models:
+        print(f"[friction] stage 1 with contact.friction {friction}", file=stream, flush=True)
+        started = time.perf_counter()
+        with Ahead(stream) as ahead:
+            fits.append(calibrate(config.with_friction(friction), data, ahead, stream))
+        seconds.append(time.perf_counter() - started)
+    best = min(fits, key=lambda c: c.criterion)
+    rows = tuple(
+        {"friction": c.config.law.friction, "law": c.config.law.label, "loss": c.convergence.final_loss,
+         "criterion_above_best": round(c.criterion - best.criterion, 3), "seconds": round(s, 1)}
+        for c, s in zip(fits, seconds)
+    )
+    print(
+        "[friction] by the information criterion (above the best): "
+        + ", ".join(f"{r['friction']} {r['criterion_above_best']:.4g}" for r in rows)
+        + f"; chosen: {best.config.law.friction}",
+        file=stream, flush=True,
+    )
+    return dataclasses.replace(best, frictions=rows)
 
 
 #: Information criterion (AIC or BIC) within which another contact law's refined fit is as good as the

@@ -16,7 +16,9 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh
 from scipy.optimize import minimize_scalar
 
-from touchdown_ros.workflows.calibrate import Calibration, calibrate, filtered_records, stage1_batches
+from touchdown_ros.workflows.calibrate import (
+    Calibration, calibrate, calibrate_frictions, filtered_records, stage1_batches,
+)
 from touchdown_ros.core.calibration import (
     apply_scales,
     contact_samples,
@@ -497,8 +499,14 @@ def _train(
         if resume and "stage2_start_effects" in loaded.training.extra:
             initial, progress = _resumed_path(config, calibrated, out, loaded.training.extra, initial)
     else:
-        compile_stage2_ahead(ahead, config, data)
-        calibration = calibrate(config, data, ahead, stream)
+        frictions = config.training.friction_models
+        if frictions and frictions != (config.law.friction,):
+            calibration = calibrate_frictions(config, data, stream)
+            compile_stage2_ahead(ahead, calibration.config, data)
+            ahead.start()
+        else:
+            compile_stage2_ahead(ahead, config, data)
+            calibration = calibrate(config, data, ahead, stream)
         calibrated = calibration.config
         stage1 = calibration.summary()
         if config.training.placement == "data":
