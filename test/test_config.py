@@ -118,6 +118,26 @@ def test_contact_law_and_training_settings(tmp_path):
         load_config(overrides={"contact.slip_velocity": 0.0})
 
 
+def test_config_reads_the_friction_models_stage_1_chooses_from_and_moves_a_rig_to_another():
+    """training.friction_models: a list of FRICTION_MODELS (empty by default: contact.friction alone); a wrong
+    one is refused naming the key. `Config.with_friction` gives the rig the YAML would with that contact.friction:
+    its law, its candidate laws and the filter noise of its state (a spinning ring's speed is an eighth)."""
+    assert load_config().training.friction_models == ()
+    paper = load_config(overrides={"training.friction_models": ["paper", "spinning_ring", "paper"],
+                                   "filter.ring_process_noise": 2.0e-3, "contact.slip_velocity": 0.02})
+    assert paper.training.friction_models == ("paper", "spinning_ring")
+    for wrong in ("spinning_ring", ["paper", "ring"], [1]):
+        with pytest.raises(ConfigError, match="training.friction_models"):
+            load_config(overrides={"training.friction_models": wrong})
+    ring = load_config(overrides={"contact.friction": "spinning_ring", "filter.ring_process_noise": 2.0e-3,
+                                  "contact.slip_velocity": 0.02})
+    for moved, read in ((paper.with_friction("spinning_ring"), ring), (ring.with_friction("paper"), paper)):
+        assert moved.law == read.law and moved.training.contact_laws == read.training.contact_laws
+        np.testing.assert_array_equal(moved.noise.process, read.noise.process)
+        np.testing.assert_array_equal(moved.noise.initial, read.noise.initial)
+    assert len(ring.noise.process) == 8 and ring.noise.process[-1] == 2.0e-3 and len(paper.noise.process) == 7
+
+
 def test_deep_shared_memory_profile_is_a_fast_dds_profile():
     """config/fastdds_deep_shm.xml: well-formed XML (no '--' in its comments), the default
     participant profile using a shared-memory transport deeper than Fast DDS's 512 messages."""
