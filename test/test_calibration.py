@@ -336,6 +336,7 @@ def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():
 
     said = calibration(0.0004, 0.0012).friction_note()
     assert said.startswith("friction: mu 0.0004 and k_ZR 0.0012") and "-p contact.friction:=spinning_ring" in said
+    assert "training.friction_models:=[paper, spinning_ring]" in said
     assert calibration(0.0004, 0.0012).notes() == [said]
     for quiet in (calibration(2 * LOW_FRICTION, 0.001), calibration(0.001, LOW_FRICTION),
                   calibration(0.0004, 0.0012, "co_rotating_ring")):
