@@ -5,7 +5,7 @@ defaults run once more on the cache the first filled ("warm": what a second `tra
 same shapes costs).
 
     .venv/bin/python bench/calibration_cost.py [--bags DIR] [--runs 1] [--with COMMIT_CHECKOUT]
-        [--against COMMIT_CHECKOUT] [--guess-scale 3] [--cold-only]
+        [--against COMMIT_CHECKOUT] [--guess-scale 3] [--cold-only] [--frictions paper,spinning_ring]
 
 Without `--bags` the campaign is simulated first. `--with DIR` adds, run by run in turn, the
 trainer of another checkout (e.g. `git worktree add /tmp/old <commit>`) with `--steps 40`, the
@@ -13,7 +13,8 @@ earlier release's default, so the two are measured side by side on the same mach
 `--against DIR` adds that checkout's trainer with the same defaults and an empty cache of its own, run
 in turn with this one's (an A/B of two versions); `--guess-scale 3` starts from the reference
 guess's six contact constants times 3 (docs/calibration.md's campaign case); `--cold-only` runs only
-the defaults with an empty cache (and the other checkouts).
+the defaults with an empty cache (and the other checkouts). `--frictions A,B` adds, in turn with the
+defaults, a cold run that lets the bags choose the friction model (`training.friction_models: [A, B]`).
 The campaign is trained as `make demo` does: the axial loader as a conditional effect.
 """
 from __future__ import annotations
@@ -54,6 +55,7 @@ def main() -> int:
     parser.add_argument("--against", type=Path, help="another checkout, trained with the same defaults")
     parser.add_argument("--guess-scale", type=float, default=1.0, help="the reference contact guess times this")
     parser.add_argument("--cold-only", action="store_true", help="only the defaults with an empty cache")
+    parser.add_argument("--frictions", help="friction models the bags choose from, comma-separated (a run of its own)")
     args = parser.parse_args()
     python = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
@@ -82,6 +84,10 @@ def main() -> int:
         }
         if args.cold_only:
             cases = {"stage 1 + stage 2 (defaults), cold cache": cold}
+        if args.frictions:
+            models = ", ".join(args.frictions.split(","))
+            cases[f"the friction chosen by the bags ([{models}]), cold cache"] = lambda: cold(
+                "-p", f"training.friction_models:=[{models}]")
         if args.against is not None:
             cases[f"{args.against}: defaults, cold cache"] = lambda: timed(
                 train, env=dict(os.environ, PYTHONPATH=str(args.against),
