@@ -616,6 +616,31 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     assert ("refined_loss" in rigid) == (v.name == "soft_bearing"), rigid
 
 
+def test_the_bags_choose_the_papers_friction_where_the_inner_ring_cannot_turn(tmp_path, capsys):
+    """`training.friction_models: [paper, spinning_ring]` on a rig whose inner ring cannot turn (grippy_heavy
+    with the ring's inertia 1000 kg m^2 for 3e-3: the truth's friction acts against the rotor's whole surface
+    speed, as the paper's model has it): stage 1 keeps the paper's friction (the ring 20.2 behind on
+    2026-11-28) and finds the rig's friction (mu 0.2999 for the kinetic 0.30). Where the ring turns freely the
+    same choice keeps the ring (stiff_quiet's train-and-estimate test)."""
+    v = variant("grippy_heavy")
+    v = dataclasses.replace(v, name="grippy_ring_at_rest",
+                            overrides={**v.overrides, "simulator.ceramic.ring_inertia": 1000.0})
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=3, seed=0)
+    rig = write_rig_yaml(v, tmp_path / "bags", overwrite=True)
+    coeffs = tmp_path / "c.yaml"
+    choose = ["-p", "training.friction_models:=[paper, spinning_ring]"]
+    assert main(["train", *map(str, bags), "--config", str(rig), *choose, "-o", str(coeffs), "--steps", "0"]) == 0
+    said = capsys.readouterr().err
+    document = yaml.safe_load(coeffs.read_text())
+    calibration = document["training"]["calibration"]
+    tried = {f["friction"]: f for f in calibration["friction_models"]}
+    assert document["contact"]["friction"] == calibration["friction"] == "paper"
+    assert tried["paper"]["criterion_above_best"] == 0.0 and tried["spinning_ring"]["criterion_above_best"] > 10, tried
+    assert "[friction] by the information criterion" in said and "chosen: paper" in said
+    assert document["contact"]["mu"] == pytest.approx(0.30, rel=0.1)
+    assert len(document["filter"]["process_noise"]) == 7  # no ring speed in the state
+
+
 #: The simulator's axial mount (the same on every family rig), as a user would read it off the disc
 #: springs' data sheet: preload and the force it adds at most, N.
 MOUNT = [
