@@ -630,13 +630,14 @@ def test_the_bags_choose_the_papers_friction_where_the_inner_ring_cannot_turn(tm
     coeffs = tmp_path / "c.yaml"
     choose = ["-p", "training.friction_models:=[paper, spinning_ring]"]
     assert main(["train", *map(str, bags), "--config", str(rig), *choose, "-o", str(coeffs), "--steps", "0"]) == 0
-    said = capsys.readouterr().err
+    said = capsys.readouterr()
     document = yaml.safe_load(coeffs.read_text())
     calibration = document["training"]["calibration"]
     tried = {f["friction"]: f for f in calibration["friction_models"]}
     assert document["contact"]["friction"] == calibration["friction"] == "paper"
+    assert ", friction paper, k_R " in said.out  # train's summary says which friction it kept
     assert tried["paper"]["criterion_above_best"] == 0.0 and tried["spinning_ring"]["criterion_above_best"] > 10, tried
-    assert "[friction] by the information criterion" in said and "chosen: paper" in said
+    assert "[friction] by the information criterion" in said.err and "chosen: paper" in said.err
     assert document["contact"]["mu"] == pytest.approx(0.30, rel=0.1)
     assert len(document["filter"]["process_noise"]) == 7  # no ring speed in the state
 

@@ -121,10 +121,11 @@ def _trained(outcome, bags: int, out: Path) -> None:
     """What both training stages did, in a few lines."""
     calibration, pkbkr = outcome.calibration, outcome.pkbkr
     if calibration is not None:
-        nominal = outcome.config.nominal
+        nominal, law = outcome.config.nominal, outcome.config.law
+        friction = f", friction {law.friction}" if law.friction != "paper" or calibration.frictions else ""
         print(
             f"stage 1 ({'converged' if calibration.convergence.converged else 'NOT converged'}, "
-            f"{calibration.convergence.steps} steps): {outcome.config.law.label}, "
+            f"{calibration.convergence.steps} steps): {law.label}{friction}, "
             + ", ".join(
                 f"{k} {v:.4g} (+-{100 * calibration.relative_sd[k]:.0f} %)" for k, v in nominal._asdict().items()
             )
