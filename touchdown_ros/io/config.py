@@ -469,9 +469,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
 def _friction_models(read: ParameterReader) -> tuple[str, ...]:
     """training.friction_models: the friction models stage 1 calibrates in turn for the data to choose."""
     key = "training.friction_models"
-    models = read._get(key, [])
-    if not isinstance(models, list) or not all(isinstance(v, str) for v in models):
-        raise ConfigError(f"{read.source}: parameter '{key}' must be a list such as [paper, spinning_ring]")
+    models = _names(read, key)
     unknown = [m for m in models if m not in FRICTION_MODELS]
     if unknown:
         raise ConfigError(f"{read.source}: {key}: {unknown[0]!r} is not one of {', '.join(FRICTION_MODELS)}")
