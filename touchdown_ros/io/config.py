@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from numpy.typing import ArrayLike
 import yaml
 
 from touchdown_ros.core import effects as effects_library
@@ -240,14 +241,12 @@ class Config:
         the filter noise follows the state (a spinning ring's speed is an eighth state, with the YAML's
         filter.ring_process_noise and ring_initial_covariance)."""
         law = self.law.with_friction(friction, self.law.slip_velocity)
-        ring = (
-            [self.parameters.get("filter.ring_process_noise", RING_PROCESS_NOISE)],
-            [self.parameters.get("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE)],
-        ) if law.spins_ring else ([], [])
-        noise = self.noise._replace(
-            process=np.append(np.asarray(self.noise.process)[:STATE_SIZE], ring[0]),
-            initial=np.append(np.asarray(self.noise.initial)[:STATE_SIZE], ring[1]),
+        process, initial = state_noise(
+            self.noise.process, self.noise.initial, law.spins_ring,
+            self.parameters.get("filter.ring_process_noise", RING_PROCESS_NOISE),
+            self.parameters.get("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE),
         )
+        noise = self.noise._replace(process=process, initial=initial)
         laws = tuple(c.with_friction(friction, c.slip_velocity) for c in self.training.contact_laws)
         return replace(self, law=law, noise=noise, training=replace(self.training, contact_laws=laws))
 
@@ -307,6 +306,16 @@ RING_PROCESS_NOISE = 1.0e-3
 RING_INITIAL_COVARIANCE = 1.0
 
 
+def state_noise(
+    rotor_q: ArrayLike, rotor_p0: ArrayLike, spins_ring: bool, ring_q: float, ring_p0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Q per sample and P_0 of the filter's state: the rotor's (its first STATE_SIZE entries), then, when the
+    ring spins, its speed's ((rad/s)^2)."""
+    ring = ([ring_q], [ring_p0]) if spins_ring else ([], [])
+    return (np.append(np.asarray(rotor_q, dtype=float)[:STATE_SIZE], ring[0]),
+            np.append(np.asarray(rotor_p0, dtype=float)[:STATE_SIZE], ring[1]))
+
+
 def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>") -> Config:
     """Build a Config from flat dotted ROS parameters (as the node receives them)."""
     read = ParameterReader(flat, source)
@@ -334,16 +343,12 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         scale_Z=scale.copy(),
     )
     measurement_sigma = read.number("filter.measurement_noise", positive=True)
-    ring = law.spins_ring
     ring_q = read.number("filter.ring_process_noise", RING_PROCESS_NOISE, non_negative=True)
     ring_p0 = read.number("filter.ring_initial_covariance", RING_INITIAL_COVARIANCE, non_negative=True)
     rotor_q = read.numbers("filter.process_noise", STATE_SIZE, non_negative=True)
     rotor_p0 = read.numbers("filter.initial_covariance", STATE_SIZE, non_negative=True)
-    noise = FilterNoise(
-        process=np.append(rotor_q, [ring_q] if ring else []),
-        measurement=np.full(3, measurement_sigma**2),
-        initial=np.append(rotor_p0, [ring_p0] if ring else []),
-    )
+    process, initial = state_noise(rotor_q, rotor_p0, law.spins_ring, ring_q, ring_p0)
+    noise = FilterNoise(process=process, measurement=np.full(3, measurement_sigma**2), initial=initial)
     config = Config(
         rig=rig,
         nominal=nominal,
