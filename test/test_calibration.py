@@ -350,6 +350,28 @@ def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():
     assert "-p contact.friction" not in said
 
 
+def test_calibration_says_when_the_friction_came_out_above_any_bearing_contacts():
+    """mu or k_ZR above HIGH_FRICTION (a spinning ring's bore friction taking up a hidden contact angle fitted
+    mu 1.49): a note that it has likely taken up a missing force, naming diagnose and how to train the effect;
+    the bore's axial friction named only with the ring's friction; not at a dry contact's 0.3."""
+    from touchdown_ros.workflows.calibrate import HIGH_FRICTION
+
+    def calibration(mu, k_ZR, friction):
+        config = load_config(None).with_friction(friction)
+        return stage1_result(config.calibrated(
+            config.nominal._replace(mu=mu, k_ZR=k_ZR), config.law, config.kernel, config.noise
+        ))
+
+    said = calibration(1.49, 0.18, "spinning_ring").friction_note()
+    assert said.startswith("friction: mu 1.5 and k_ZR 0.18, above any bearing contact's"), said
+    assert "touchdown diagnose" in said and "effects.active" in said and "bore's friction" in said
+    assert calibration(1.49, 0.18, "spinning_ring").notes() == [said]
+    said = calibration(0.2, 2 * HIGH_FRICTION, "paper").friction_note()
+    assert "above any bearing contact's" in said and "bore's friction" not in said
+    for quiet in (calibration(0.3, 0.3, "spinning_ring"), calibration(HIGH_FRICTION, 0.2, "paper")):
+        assert quiet.friction_note() is None and quiet.notes() == []
+
+
 def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
     """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at
     the rig's: the restart moves c_R up by the factor that lowers the loss most and keeps c_Z,

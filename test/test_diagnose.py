@@ -266,6 +266,38 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
     assert np.linalg.norm(after) < (k_step_ratio or 1.0) * np.linalg.norm(before), (before, after)
 
 
+def test_a_contact_angle_a_spinning_rings_friction_took_up_is_found_from_the_rigs_friction(tmp_path):
+    """Against a spinning ring the bore's friction opposes axial sliding, so stage 1 can let a large mu act as
+    the axial force a hidden contact angle makes in radial contact (mu 1.49 on these drops); train's note says
+    the friction is above any bearing contact's, and diagnose's best fits start again from the rig YAML's
+    friction: the contact angle is named well ahead, sized within 10 % with a bearing's mu, and lowers the
+    z error (from the calibrated friction alone: mu 1.44, 49 ahead, z 0.87x)."""
+    from touchdown_ros.workflows.calibrate import HIGH_FRICTION
+
+    bags, rig, truths = _family(tmp_path / "bags", "linear_spring", contact_angle_tan=0.2)
+    calibrated = _calibrated(
+        bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15",
+        "-p", "contact.friction:=spinning_ring",
+    )
+    notes = yaml.safe_load(calibrated.read_text())["training"]["calibration"]["notes"]
+    assert any("above any bearing contact's" in note for note in notes), notes
+    out = tmp_path / "diagnosis"
+    assert (
+        main(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out", str(out)]) == 0
+    )
+    verdict = _diagnosis(out)["models"][0]["verdict"]
+    assert verdict["explained"] and verdict["best"] == "contact_angle_coupling", verdict["text"]
+    assert verdict["margin_to_second"] > 100.0, verdict["margin_to_second"]
+    first = verdict["candidates"][0]
+    assert first["nominal"]["mu"] < HIGH_FRICTION, first["nominal"]
+    truth = float(np.mean([0.2 * t.radial_stiffness for t in truths]))
+    fitted = first["parameters"]["tan_beta"]["value"] * first["parameters"]["k_radial"]["value"]
+    assert abs(fitted - truth) < 0.1 * truth, (fitted, truth)
+    before = verdict["held_out"]["baseline_k_step_rmse_m"][2]
+    after = first["held_out_k_step_rmse_m"][2]
+    assert after < 0.8 * before, (before, after)
+
+
 def test_a_hidden_magnetic_stiffness_is_named_sized_and_halves_the_force_error(tmp_path):
     """The whole gate for one more library effect: a residual negative magnetic stiffness of 1e7 N/m
     (radial and axial) on soft_bearing is named, its diagnose fit and `touchdown train` with it are

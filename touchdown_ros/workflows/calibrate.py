@@ -139,9 +139,22 @@ class Calibration:
         )
 
     def friction_note(self) -> str | None:
-        """Where the paper's friction (the inner ring at rest) came out at hardly any friction, that a freely
-        turning inner ring is the likelier reading and the setting that models it; None otherwise."""
+        """Where the friction came out above any bearing contact's (`HIGH_FRICTION`), that it has likely taken
+        up a force the model lacks and how to find it; where the paper's friction (the inner ring at rest) came
+        out at hardly any, that a freely turning inner ring is the likelier reading and the setting that models
+        it; None otherwise."""
         nominal = self.config.nominal
+        if max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION:
+            bore = (" (against a spinning ring the bore's friction opposes axial sliding, so a large mu acts as an "
+                    "axial force in radial contact, as a contact angle or an axial thrust would)"
+                    if self.config.law.spins_ring else "")
+            return (
+                f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, above any bearing contact's "
+                f"(dry steel or ceramic on steel slides at 0.1-0.3; above {HIGH_FRICTION:g} is implausible): the "
+                f"friction has likely taken up a force the model lacks{bore}. `touchdown diagnose BAGS --coeffs "
+                "FILE` names such an effect, and training with it switched on (-p 'effects.active:=[NAME]') fits "
+                "the friction again beside it"
+            )
         if self.config.law.friction != "paper" or max(float(nominal.mu), float(nominal.k_ZR)) >= LOW_FRICTION:
             return None
         ring = next((f for f in self.frictions if f["friction"] == "spinning_ring"), None)
@@ -610,6 +623,11 @@ def undecided_support(refined: Sequence[Candidate]) -> Candidate:
 #: Friction coefficient (mu, k_ZR) below which the paper's friction reads as hardly any: boundary-lubricated
 #: sliding starts about there, dry steel or ceramic on steel is 0.1-0.3.
 LOW_FRICTION = 0.05
+
+#: Friction coefficient (mu, k_ZR) above any bearing contact's: dry steel or ceramic on steel slides at 0.1-0.3,
+#: clean unlubricated steel at up to about 0.5-0.6. Stage 1 fits it there when the friction takes the part of
+#: a force the model lacks (`Calibration.friction_note`).
+HIGH_FRICTION = 0.5
 
 #: How to give the axial support from the mount's data sheet (the disc springs' preload and the force they
 #: add at most until they block), which stage 1 then holds.

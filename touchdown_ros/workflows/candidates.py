@@ -47,6 +47,7 @@ from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
+from touchdown_ros.workflows.calibrate import HIGH_FRICTION
 from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
@@ -67,6 +68,9 @@ class FitSettings:
     tolerance: float = 1.0e-5  # relative loss change that counts as converged
     per_bag: int = 2  # the best this many candidates are also fitted bag by bag
     from_best: int = 2  # this many runners-up (and the baseline) are fitted again from the best one's constants
+    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, the baseline and the best
+    # candidates are fitted again from it (None: never)
+    guess_friction: tuple[float, float] | None = None
 
 
 @dataclass
@@ -277,6 +281,32 @@ def _fit_candidates(
     selection = Selection(
         [p.name for p in data.paths], fits, problem.every, problem.block, np.asarray(config.noise.measurement)
     )
+
+    def keep_lower(first: CandidateFit, start: Stage1, label: str) -> None:
+        """Fit `first` again from `start`; keep that fit where its loss is the lower."""
+        second, theta = fitted(first.name, start, f", from {label}")
+        current = selection.fits[[f.name for f in selection.fits].index(first.name)]
+        if second.convergence.final_loss < current.convergence.final_loss:
+            print(
+                f"[fit {first.name}] kept the start from {label}: loss "
+                f"{second.convergence.final_loss:.7g} against {current.convergence.final_loss:.7g}",
+                file=stream, flush=True,
+            )
+            selection.fits[[f.name for f in selection.fits].index(first.name)] = second
+            thetas[first.name] = theta
+
+    # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
+    # ring the bore's friction against axial sliding acts as an axial force in radial contact: a hidden
+    # contact angle gave mu 1.49, and its candidate's fit stayed there). So where the calibrated friction is
+    # that high, the baseline and the best candidates start once more with the rig YAML's friction, the
+    # other constants as they fitted; the lower loss is kept.
+    nominal = config.nominal
+    if settings.guess_friction is not None and max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION:
+        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
+              f"any bearing contact's ({HIGH_FRICTION:g}): the best fits start again from the rig's guess "
+              f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g})", file=stream, flush=True)
+        for first in [selection.baseline, *ranked(selection)[: 1 + settings.from_best]]:
+            keep_lower(first, with_friction(thetas[first.name], *settings.guess_friction), "the guess's friction")
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
     # while another, started alike, leaves it. So the baseline and the runners-up start once more
@@ -285,15 +315,7 @@ def _fit_candidates(
     if order and settings.from_best:
         best = order[0].name
         for first in [selection.baseline, *order[1 : 1 + settings.from_best]]:
-            second, theta = fitted(first.name, thetas[best], f", from {best}'s constants")
-            if second.convergence.final_loss < first.convergence.final_loss:
-                print(
-                    f"[fit {first.name}] kept the start from {best}'s constants: loss "
-                    f"{second.convergence.final_loss:.7g} against {first.convergence.final_loss:.7g}",
-                    file=stream, flush=True,
-                )
-                selection.fits[[f.name for f in selection.fits].index(first.name)] = second
-                thetas[first.name] = theta
+            keep_lower(first, thetas[best], f"{best}'s constants")
     for fit in ranked(selection)[: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
@@ -310,6 +332,13 @@ def _fit_candidates(
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
+
+
+def with_friction(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
+    """theta with ln mu and ln k_ZR set to these (the other coordinates kept)."""
+    log_f0 = np.array(theta.log_f0, dtype=float)
+    log_f0[[PARAMETER_NAMES.index("mu"), PARAMETER_NAMES.index("k_ZR")]] = np.log([mu, k_ZR])
+    return theta._replace(log_f0=log_f0)
 
 
 def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str) -> dict[str, float]:
