@@ -306,7 +306,8 @@ def _fit_candidates(
               f"any bearing contact's ({HIGH_FRICTION:g}): the best fits start again from the rig's guess "
               f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g})", file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)[: 1 + settings.from_best]]:
-            keep_lower(first, with_friction(thetas[first.name], *settings.guess_friction), "the guess's friction")
+            start = with_friction_coefficients(thetas[first.name], *settings.guess_friction)
+            keep_lower(first, start, "the guess's friction")
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
     # while another, started alike, leaves it. So the baseline and the runners-up start once more
@@ -334,7 +335,7 @@ def _fit_candidates(
     return selection
 
 
-def with_friction(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
+def with_friction_coefficients(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
     """theta with ln mu and ln k_ZR set to these (the other coordinates kept)."""
     log_f0 = np.array(theta.log_f0, dtype=float)
     log_f0[[PARAMETER_NAMES.index("mu"), PARAMETER_NAMES.index("k_ZR")]] = np.log([mu, k_ZR])
