@@ -2,6 +2,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import phi
@@ -16,6 +17,14 @@ def _user_force(xi, p, rig):
 _user_force.parameters = {"F_a": (500.0, "N", "axial thrust amplitude")}
 
 
+def _contact_push(xi, p, rig):
+    """A user-written force through the bearing's contact: F along x."""
+    return jnp.stack([p["F"] + 0.0 * xi[0], 0.0 * xi[0], 0.0 * xi[0]])
+
+
+_contact_push.parameters, _contact_push.contact = {"F": (100.0, "N", "push along x")}, True
+
+
 def test_default_model_has_no_effects_and_axial_load_adds_force():
     model = load_config().model()
     assert len(model.effects) == 0
@@ -26,6 +35,31 @@ def test_default_model_has_no_effects_and_axial_load_adds_force():
     out = phi(loaded, xi)
     np.testing.assert_allclose(out[6] - base[6], -2000.0 / model.rig.mass)
     np.testing.assert_allclose(out[:6], base[:6])
+
+
+def test_a_force_through_the_contact_is_part_of_the_contact_force_and_counted_once_in_phi():
+    """contact_angle_coupling (tan(beta) F_nR up, in radial contact) acts through the bearing's contact: the
+    published contact force carries it (the simulator's does), phi counts it once; a force beside the contact
+    (axial_load) stays out of the contact force. A user's effect says so by a `contact` attribute."""
+    from touchdown_ros.core.dynamics import contact_forces
+
+    model = load_config().model()
+    rig = model.rig
+    xi = jnp.array([rig.radial_clearance + 10e-6, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0])  # 10 um into the bore
+    angle, load = fx.resolve("contact_angle_coupling"), fx.resolve("axial_load")
+    assert angle.contact and not load.contact
+    effects = fx.Effects((angle, load), ({"tan_beta": 0.2, "k_radial": 4e8}, {"force": 2000.0}))
+    with_both = model._replace(effects=effects)
+    bare, moved = contact_forces(model, xi), contact_forces(with_both, xi)
+    np.testing.assert_allclose(moved.F_z - bare.F_z, 0.2 * 4e8 * 10e-6)  # 800 N up; the load not in it
+    np.testing.assert_allclose([moved.F_x, moved.F_y, moved.F_n, moved.F_t], [bare.F_x, bare.F_y, bare.F_n, bare.F_t])
+    np.testing.assert_allclose(phi(with_both, xi)[6] - phi(model, xi)[6], (800.0 - 2000.0) / rig.mass)
+    user = fx.resolve(f"{__name__}:_contact_push")
+    assert user.contact
+    pushed = contact_forces(model._replace(effects=fx.Effects((user,))), xi)
+    np.testing.assert_allclose([pushed.F_x - bare.F_x, pushed.F_n - bare.F_n], [100.0, -100.0], atol=1e-9)
+    with pytest.raises(ValueError, match="only a force acts through the contact"):
+        fx.Effect("bad", _contact_push, _contact_push.parameters, kind=fx.MEASUREMENT, contact=True)
 
 
 def test_dotted_path_effect_is_jittable_and_differentiable():
@@ -44,7 +78,6 @@ def test_dotted_path_effect_is_jittable_and_differentiable():
 
 # ---------------------------------------------------------------- rig YAML, coefficient files, trainer
 
-import pytest  # noqa: E402
 import yaml  # noqa: E402
 
 from touchdown_ros.core.dynamics import rk4_step  # noqa: E402

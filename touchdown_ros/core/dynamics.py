@@ -157,6 +157,12 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
     else:
         F_n, F_t, F_z = friction(model.law, c.speed, *c.sliding)
         torque = jnp.zeros((), xi.dtype)
+    effects = getattr(model, "effects", None)
+    if effects and effects.act_through_contact():  # static: a force through the contact (a contact angle)
+        extra = effects.force(xi, model.rig, contact=True)
+        F_n = F_n - (extra[0] * c.cos_a + extra[1] * c.sin_a)
+        F_t = F_t + extra[0] * c.sin_a - extra[1] * c.cos_a
+        F_z = F_z + extra[2]
     return ContactForces(
         F_n=F_n,
         F_t=F_t,
@@ -226,7 +232,7 @@ def phi(model: Model, xi: Array) -> Array:
     F_x, F_y, F_z = forces.F_x, forces.F_y, forces.F_z
     effects = getattr(model, "effects", None)
     if effects and effects.acts_on(FORCE):  # static: no force effects -> the paper's phi, unchanged
-        extra = effects.force(xi, rig)
+        extra = effects.force(xi, rig, contact=False)  # those through the contact are in `forces`
         F_x, F_y, F_z = F_x + extra[0], F_y + extra[1], F_z + extra[2]
     return jnp.stack(
         [

@@ -65,10 +65,13 @@ class Effect:
     when: str = ""  # the bag condition that switches it on (condition.<when> true); "" acts always
     kind: str = FORCE  # one of KINDS
     bounds: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    contact: bool = False  # a force through the bearing's contact (a contact angle): part of the contact force
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"effect {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.contact and self.kind != FORCE:
+            raise ValueError(f"effect {self.name!r}: only a force acts through the contact, not a {self.kind} effect")
         for key, (low, high) in self.bounds.items():
             if key not in self.parameters or not low < high:
                 raise ValueError(f"effect {self.name!r}: bounds {key}: ({low}, {high}) name no parameter or are empty")
@@ -85,12 +88,14 @@ def effect(
     description: str = "",
     kind: str = FORCE,
     bounds: Mapping[str, tuple[float, float]] | None = None,
+    contact: bool = False,
 ):
-    """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path)."""
+    """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `contact`: a
+    force through the bearing's contact, published as part of the contact force."""
 
     def wrap(function: EffectFunction) -> Effect:
         text = description or (function.__doc__ or "")
-        return Effect(name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}))
+        return Effect(name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact)
 
     return wrap
 
@@ -155,16 +160,21 @@ class Effects:
         """Whether an effect of `kind` is among them (static: decides what is traced)."""
         return any(e.kind == kind for e in self.effects)
 
-    def _sum(self, kind: str, xi: Array, rig) -> Array:
+    def _sum(self, kind: str, xi: Array, rig, contact: bool | None = None) -> Array:
         total = jnp.zeros(3, dtype=xi.dtype)
         for e, p, gate in zip(self.effects, self.params, self.gates):
-            if e.kind == kind:
+            if e.kind == kind and contact in (None, e.contact):
                 total = total + gate * jnp.asarray(e.function(xi, p, rig), dtype=xi.dtype)
         return total
 
-    def force(self, xi: Array, rig) -> Array:
-        """Sum of the active force effects (3,), N, each times its gate."""
-        return self._sum(FORCE, xi, rig)
+    def force(self, xi: Array, rig, contact: bool | None = None) -> Array:
+        """Sum of the active force effects (3,), N, each times its gate; `contact` True: only those through
+        the bearing's contact (`Effect.contact`), False: only the others."""
+        return self._sum(FORCE, xi, rig, contact)
+
+    def act_through_contact(self) -> bool:
+        """Whether a force through the bearing's contact is among them (static: decides what is traced)."""
+        return any(e.contact for e in self.effects)
 
     def measurement(self, xi: Array, rig) -> Array:
         """Sum of the active measurement effects' changes of the sensor output (3,), m, each times its gate."""
@@ -301,6 +311,7 @@ LIBRARY: dict[str, Effect] = {
             _contact_exponent,
             {"K": (100.0, "N", "force at 10 um axial deformation"), "n": (1.5, "1", "contact exponent")},
             _contact_exponent.__doc__,
+            contact=True,
         ),
         Effect(
             "viscous_friction",
@@ -317,6 +328,7 @@ LIBRARY: dict[str, Effect] = {
                 "k_radial": (1.0e8, "N/m", "radial contact stiffness"),
             },
             _contact_angle_coupling.__doc__,
+            contact=True,
         ),
         Effect(
             "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")},
@@ -364,7 +376,7 @@ def _lookup(spec: str) -> Effect:
                 )
             return Effect(
                 attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
-                bounds=dict(getattr(obj, "bounds", {})),
+                bounds=dict(getattr(obj, "bounds", {})), contact=bool(getattr(obj, "contact", False)),
             )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):

@@ -62,7 +62,7 @@ def model_force(model: Model, xi: Array) -> Array:
     c = contact_forces(model, xi)
     force = jnp.stack([c.F_x, c.F_y, c.F_z])
     if model.effects:
-        force = force + model.effects.force(xi, model.rig)
+        force = force + model.effects.force(xi, model.rig, contact=False)  # those through the contact are in c
         if model.effects.acts_on(SPEED):
             force = force + unbalance_change(model, xi)
     return force
