@@ -76,10 +76,13 @@ def minimise(
     on_step: Callable[[int, float, np.ndarray], None] | None = None,
     patience: int = 0,
     bounds: Sequence[tuple[float, float]] | None = None,
+    restarts: int = 0,
 ) -> tuple[np.ndarray, Convergence]:
     """L-BFGS-B from theta0 (within `bounds`, (low, high) per coordinate, if given) until the loss
     changes by less than `tolerance` (relative) or the projected gradient is below it, at most
-    `max_steps` iterations; progress on `stream`.
+    `max_steps` iterations; progress on `stream`. Stopped by the loss's change, it starts again from
+    where it stopped (its curvature memory cleared) up to `restarts` times, while a restart lowers
+    the loss by more than `tolerance` (relative): on a rough loss one short step can stop it early.
 
     `value_and_grad` may return a third value, a held-out loss at theta (data not in the loss).
     Then the step with the lowest held-out loss is returned (step 0, the start, included), and
@@ -148,15 +151,30 @@ def minimise(
         return theta0, Convergence(
             False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start
         )
-    result = scipy.optimize.minimize(
-        fun,
-        theta0,
-        jac=True,
-        method="L-BFGS-B",
-        bounds=bounds,
-        callback=callback,
-        options={"maxiter": max_steps, "ftol": tolerance, "gtol": tolerance, "maxls": 40},
-    )
+
+    def run(theta: np.ndarray, steps: int):
+        return scipy.optimize.minimize(
+            fun,
+            theta,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            callback=callback,
+            options={"maxiter": steps, "ftol": tolerance, "gtol": tolerance, "maxls": 40},
+        )
+
+    result = run(theta0, max_steps)
+    for _ in range(restarts):
+        if "REDUCTION OF F" not in str(result.message) or len(history) >= max_steps or best.get("stopped"):
+            break
+        stopped = float(result.fun)
+        again = run(np.asarray(result.x), max_steps - len(history))
+        if again.fun < result.fun:
+            result = again
+        if stopped - float(result.fun) <= tolerance * max(abs(stopped), 1.0):
+            break
+        print(f"[{label}] restarted where the loss's change stopped it: {stopped:.7g} -> {float(result.fun):.7g}",
+              file=stream, flush=True)
     reason = str(result.message)
     converged = bool(result.success) and result.fun < DIVERGED_LOSS
     recent = np.asarray(history[-4:])
