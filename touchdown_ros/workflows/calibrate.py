@@ -144,7 +144,7 @@ class Calibration:
         out at hardly any, that a freely turning inner ring is the likelier reading and the setting that models
         it; None otherwise."""
         nominal = self.config.nominal
-        if max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION:
+        if friction_above_any_bearings(nominal):
             bore = (" (against a spinning ring the bore's friction opposes axial sliding, so a large mu acts as an "
                     "axial force in radial contact, as a contact angle or an axial thrust would)"
                     if self.config.law.spins_ring else "")
@@ -628,6 +628,12 @@ LOW_FRICTION = 0.05
 #: clean unlubricated steel at up to about 0.5-0.6. Stage 1 fits it there when the friction takes the part of
 #: a force the model lacks (`Calibration.friction_note`).
 HIGH_FRICTION = 0.5
+
+
+def friction_above_any_bearings(nominal: Nominal) -> bool:
+    """Whether mu or k_ZR of these constants is above `HIGH_FRICTION`."""
+    return max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION
+
 
 #: How to give the axial support from the mount's data sheet (the disc springs' preload and the force they
 #: add at most until they block), which stage 1 then holds.

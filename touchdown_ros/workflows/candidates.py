@@ -47,7 +47,7 @@ from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
-from touchdown_ros.workflows.calibrate import HIGH_FRICTION
+from touchdown_ros.workflows.calibrate import HIGH_FRICTION, friction_above_any_bearings
 from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
@@ -307,7 +307,7 @@ def _fit_candidates(
     # that high, the baseline and the best candidates start once more with the rig YAML's friction, the
     # other constants as they fitted; the lower loss is kept.
     nominal = config.nominal
-    if settings.guess_friction is not None and max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION:
+    if settings.guess_friction is not None and friction_above_any_bearings(nominal):
         print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
               f"any bearing contact's ({HIGH_FRICTION:g}): the best fits start again from the rig's guess "
               f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g})", file=stream, flush=True)
