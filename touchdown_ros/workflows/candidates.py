@@ -291,14 +291,15 @@ def _fit_candidates(
     def keep_lower(first: CandidateFit, start: Stage1, label: str, restarts: int = 0) -> None:
         """Fit `first` again from `start`; keep that fit where its loss is the lower."""
         second, theta = fitted(first.name, start, f", from {label}", restarts)
-        current = selection.fits[[f.name for f in selection.fits].index(first.name)]
+        index = [f.name for f in selection.fits].index(first.name)
+        current = selection.fits[index]
         if second.convergence.final_loss < current.convergence.final_loss:
             print(
                 f"[fit {first.name}] kept the start from {label}: loss "
                 f"{second.convergence.final_loss:.7g} against {current.convergence.final_loss:.7g}",
                 file=stream, flush=True,
             )
-            selection.fits[[f.name for f in selection.fits].index(first.name)] = second
+            selection.fits[index] = second
             thetas[first.name] = theta
 
     # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
