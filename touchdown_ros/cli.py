@@ -176,9 +176,20 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
-#: The demo's training: Table 1's axial loader is a recorded test condition, so its force is fitted where
-#: it was on (docs/workbench.md shows how the workbench finds this missing effect).
-DEMO_EFFECTS = {"effects.active": ["axial_load"], "effects.when.axial_load": "axial_load"}
+#: What `touchdown demo` trains beside PKBKR: Table 1's axial loader and brake are recorded test conditions, so
+#: each is fitted where it was on (docs/workbench.md shows how the workbench finds the loader as a missing effect).
+DEMO_EFFECTS = {
+    "effects.active": ["axial_load", "brake_decay"],
+    "effects.when.axial_load": "axial_load",
+    "effects.when.brake_decay": "brake",
+}
+
+
+def demo_training_config(path: Path | None, overrides: dict) -> Config:
+    """The rig `touchdown demo` trains: `DEMO_EFFECTS` switched on, unless the user's `-p` sets any `effects.*`:
+    then the user's effects alone."""
+    chosen = any(name.startswith("effects.") for name in overrides)
+    return load_config(path, overrides if chosen else {**DEMO_EFFECTS, **overrides})
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -192,7 +203,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     all_bags = sorted(bags.glob("exp_*"))
     coeffs = None
     if not args.quick:
-        trained = config if args.paper_model else load_config(args.config, {**overrides, **DEMO_EFFECTS})
+        trained = config if args.paper_model else demo_training_config(args.config, overrides)
         coeffs = out / "coefficients.yaml"
         _trained(
             commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs
@@ -320,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--paper-model",
         action="store_true",
-        help="train the paper's model alone (without the Table 1 axial-load effect)",
+        help="train the paper's model alone (without the Table 1 axial-load and brake effects)",
     )
     p.set_defaults(run=cmd_demo)
 
