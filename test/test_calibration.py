@@ -593,7 +593,7 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     np.testing.assert_allclose(calibration["sensor_noise_m"], sigma, rtol=0.15)  # R from the levitated samples
     # the offline estimate's Q: the fitted one times the factor of the lowest leave-one-out smoothing error
     smoothing, scale = document["training"]["smoothing_noise"], document["filter"]["smoothing_noise_scale"]
-    assert 0.02 <= scale <= 3.0 and smoothing["scale"] == pytest.approx(scale, rel=1e-3)
+    assert 0.02 <= scale <= 1.0 and smoothing["scale"] == pytest.approx(scale, rel=1e-3)
     assert smoothing["leave_one_out_error_um"]["chosen"] <= smoothing["leave_one_out_error_um"]["fitted_q"]
     # a factor other than 1 only for a fall of the squared residual beyond its standard error
     fall = smoothing["best_factor_fall_um2"]

@@ -345,8 +345,11 @@ class TrainOutcome:
     seconds: float
 
 
-#: The factors on Q the smoothing search may choose (ln-scale bounds) and its tolerance on ln s.
-SMOOTHING_SCALE_RANGE = (0.02, 3.0)
+#: The factors on Q the smoothing search may choose (ln-scale bounds) and its tolerance on ln s. At most the
+#: likelihood's Q: it is sized for the model's bursts of error in contact, and the smoother wants less of it
+#: (docs/calibration.md, "Process noise for the smoothed answer"); a factor above 1, chosen by a fall of the
+#: leave-one-out error within its noise, made a held-out estimate worse and its band wider.
+SMOOTHING_SCALE_RANGE = (0.02, 1.0)
 SMOOTHING_SCALE_TOLERANCE = 0.05
 
 
