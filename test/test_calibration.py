@@ -370,6 +370,15 @@ def test_calibration_says_when_the_friction_came_out_above_any_bearing_contacts(
     assert "above any bearing contact's" in said and "bore's friction" not in said
     for quiet in (calibration(0.3, 0.3, "spinning_ring"), calibration(HIGH_FRICTION, 0.2, "paper")):
         assert quiet.friction_note() is None and quiet.notes() == []
+    # with an effect already switched on (a user's thrust fitted +44 % beside mu 0.69 on a spinning ring): not
+    # "switch it on", but that its size is then in doubt
+    config = load_config(None, {"effects.active": ["axial_load"]}).with_friction("spinning_ring")
+    with_load = stage1_result(config.calibrated(
+        config.nominal._replace(mu=0.69, k_ZR=0.19), config.law, config.kernel, config.noise
+    ))
+    said = with_load.friction_note()
+    assert "With axial_load switched on it is still that high" in said and "not to be trusted" in said, said
+    assert "effects.active" not in said and "touchdown diagnose" in said
 
 
 def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():

@@ -148,12 +148,21 @@ class Calibration:
             bore = (" (against a spinning ring the bore's friction opposes axial sliding, so a large mu acts as an "
                     "axial force in radial contact, as a contact angle or an axial thrust would)"
                     if self.config.law.spins_ring else "")
-            return (
+            said = (
                 f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, above any bearing contact's "
                 f"(dry steel or ceramic on steel slides at 0.1-0.3; above {HIGH_FRICTION:g} is implausible): the "
-                f"friction has likely taken up a force the model lacks{bore}. `touchdown diagnose BAGS --coeffs "
-                "FILE` names such an effect, and training with it switched on (-p 'effects.active:=[NAME]') fits "
-                "the friction again beside it"
+                f"friction has likely taken up a force the model lacks{bore}. "
+            )
+            if self.effects:
+                return said + (
+                    f"With {', '.join(self.effects.names)} switched on it is still that high: another force may be "
+                    "missing, or an active effect's form may differ from the rig's and the friction make up the "
+                    "difference (then its fitted size is not to be trusted); `touchdown diagnose BAGS --coeffs FILE` "
+                    "ranks what is left"
+                )
+            return said + (
+                "`touchdown diagnose BAGS --coeffs FILE` names such an effect, and training with it switched on "
+                "(-p 'effects.active:=[NAME]') fits the friction again beside it"
             )
         if self.config.law.friction != "paper" or max(float(nominal.mu), float(nominal.k_ZR)) >= LOW_FRICTION:
             return None
