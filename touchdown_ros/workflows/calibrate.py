@@ -164,7 +164,7 @@ class Calibration:
                 "`touchdown diagnose BAGS --coeffs FILE` names such an effect, and training with it switched on "
                 "(-p 'effects.active:=[NAME]') fits the friction again beside it"
             )
-        if self.config.law.friction != "paper" or max(float(nominal.mu), float(nominal.k_ZR)) >= LOW_FRICTION:
+        if self.config.law.friction != "paper" or largest_friction(nominal) >= LOW_FRICTION:
             return None
         ring = next((f for f in self.frictions if f["friction"] == "spinning_ring"), None)
         if ring is not None:
@@ -639,9 +639,14 @@ LOW_FRICTION = 0.05
 HIGH_FRICTION = 0.5
 
 
+def largest_friction(nominal: Nominal) -> float:
+    """The larger of the bore's (mu) and the face's (k_ZR) friction coefficients of these constants."""
+    return max(float(nominal.mu), float(nominal.k_ZR))
+
+
 def friction_above_any_bearings(nominal: Nominal) -> bool:
     """Whether mu or k_ZR of these constants is above `HIGH_FRICTION`."""
-    return max(float(nominal.mu), float(nominal.k_ZR)) > HIGH_FRICTION
+    return largest_friction(nominal) > HIGH_FRICTION
 
 
 #: How to give the axial support from the mount's data sheet (the disc springs' preload and the force they
