@@ -179,7 +179,7 @@ class Calibration:
             "spin as on an inner ring at rest, and these bags do not show that force. A freely turning inner ring, "
             "spun up by the first contacts, exerts little of it, and the contact damping may then come out high, "
             "making up for the friction the model lacks; where the ring turns freely, "
-            "-p contact.friction:=spinning_ring models its speed (training takes about twice as long), and "
+            "-p contact.friction:=spinning_ring models its speed (training takes two to three times as long), and "
             "-p 'training.friction_models:=[paper, spinning_ring]' lets the bags choose"
         )
 
