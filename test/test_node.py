@@ -381,7 +381,8 @@ def assert_recorded_estimates(bag: Path, estimate, source: str, config=CONFIG) -
 def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
     """contact.friction: spinning_ring in the rig YAML of the node and the replayer: the node advertises
     /touchdown/ring_speed (TwistWithCovarianceStamped) and the recording holds it with the other topics, equal
-    to `touchdown estimate --filtered`'s ring speed and variance."""
+    to `touchdown estimate --filtered`'s ring speed and variance; the batched output (`node.output_mode: both`)
+    carries it too (`omega_ring`, `std_omega_ring`)."""
     rig = Path(RIG).read_text()
     assert rig.count("friction: paper ") == 1
     ring_rig = tmp_path / "ring_rig.yaml"
@@ -391,8 +392,12 @@ def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
     bag, source = drop_bag(tmp_path / "drop")
     expected = estimate_bag(config, bag, estimator_for(config)).estimate
     recorded = tmp_path / "live"
+    clouds: list[PointCloud2] = []
     d = domain(2)
-    with Peer(d) as peer, NodeProcess(tmp_path, d, ["--config", str(ring_rig), "--ros-args", *FAST_NODE]) as node:
+    args = ["--config", str(ring_rig), "--ros-args", "-p", "node.output_mode:=both", *FAST_NODE]
+    with Peer(d) as peer, NodeProcess(tmp_path, d, args) as node:
+        peer.node.create_subscription(PointCloud2, config.node.batch_output_topic, clouds.append,
+                                      QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
         peer.wait_ready(node)
         assert peer.wait_for(lambda: peer.node.count_publishers(config.topics.ring_speed) == 1, 5)
         ring_types = dict(peer.node.get_topic_names_and_types())[config.topics.ring_speed]
@@ -404,9 +409,13 @@ def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
         )
         assert replay.returncode == 0, f"{replay.stdout}\n{replay.stderr}\nnode:\n{node.log()}"
         assert node.alive()
+        assert peer.wait_for(lambda: sum(c.width for c in clouds) == len(expected.stamps_ns), 20), node.log()
     assert_recorded_estimates(recorded, expected, source, config)
     ring = read_vector_topic(recorded, config.topics.ring_speed, angular=True)
     assert abs(ring.values[-1, 2] - config.rig.speed) < 0.01 * config.rig.speed  # spun up to the rotor's speed
+    batched = np.concatenate([messages.cloud_columns(c, messages.RING_OUTPUT_FIELDS) for c in clouds])
+    assert_close(batched, np.column_stack([expected.filtered.ring_speed, expected.filtered.ring_speed_std]),
+                 "omega_ring/std_omega_ring")
 
 
 @pytest.mark.parametrize("receive,output_mode", [("callback", "per_sample"), ("inline", "per_sample"),
@@ -465,19 +474,20 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     field = {name: i for i, name in enumerate(messages.BATCH_OUTPUT_FIELDS)}
     filtered = expected.filtered
     compared = ((("x", "y", "z"), np.asarray(filtered.state)[:, :3]),
-                (("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:]),
+                (("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:7]),
                 (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
                 (("fx", "fy", "fz"), np.asarray(filtered.force_xyz)),
                 (("fn", "ft"), np.column_stack([filtered.F_n, filtered.F_t])),
                 (("nis",), np.asarray(expected.nis)[:, None]),
                 (("var_vx", "var_vy", "var_vz"),
-                 np.diagonal(np.asarray(filtered.state_cov)[:, 4:, 4:], axis1=1, axis2=2)),
+                 np.diagonal(np.asarray(filtered.state_cov)[:, 4:7, 4:7], axis1=1, axis2=2)),
                 (("var_ax", "var_ay", "var_az"), np.diagonal(np.asarray(filtered.acceleration_cov), axis1=1, axis2=2)),
                 (("radial_contact", "axial_contact"),
                  np.column_stack([filtered.radial_contact, filtered.axial_contact]).astype(float)),
                 (("std_fx", "std_fy", "std_fz"), force_std(np.asarray(filtered.force_cov))))
     # every field of the batched output but t (checked through the stamps above), each against the offline estimate
     assert {n for names, _ in compared for n in names} == set(messages.BATCH_OUTPUT_FIELDS) - {"t"}
+    assert not set(messages.RING_OUTPUT_FIELDS) & {f.name for f in clouds[0].fields}  # the paper's friction: no ring
     for names, values in compared:
         assert_close(columns[:, [field[n] for n in names]], values, "/".join(names))
 

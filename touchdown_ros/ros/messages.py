@@ -30,6 +30,8 @@ BATCH_OUTPUT_FIELDS = (
     "var_vx", "var_vy", "var_vz", "var_ax", "var_ay", "var_az", "radial_contact", "axial_contact",
     "std_fx", "std_fy", "std_fz",
 )  # fmt: skip
+#: Appended to BATCH_OUTPUT_FIELDS where the ring's speed is a state (contact.friction: spinning_ring): rad/s.
+RING_OUTPUT_FIELDS = ("omega_ring", "std_omega_ring")
 
 
 def message_class(msgtype: str) -> type:
@@ -137,18 +139,23 @@ def batch_cloud(stamp_ns: int, frame_id: str, stamps_ns: np.ndarray, xyz: np.nda
     return cloud(stamp_ns, frame_id, BATCH_INPUT_FIELDS, np.column_stack([t, xyz]))
 
 
-def estimate_cloud(out, frame_id: str) -> PointCloud2:
-    """The batched estimate output (`BATCH_OUTPUT_FIELDS`) of a `core.streaming.StreamOutput`, one point per row,
-    stamped at its first row (t in s after it); SI units, variances on the diagonal of each covariance."""
+def estimate_cloud(out, frame_id: str, ring: bool = False) -> PointCloud2:
+    """The batched estimate output (`BATCH_OUTPUT_FIELDS`, then with `ring`, a friction model with the ring's speed
+    as a state, `RING_OUTPUT_FIELDS`) of a `core.streaming.StreamOutput`, one point per row, stamped at its first
+    row (t in s after it); SI units, variances on the diagonal of each covariance."""
     stamps = out.stamps_ns
     t = (stamps - stamps[0]) / 1e9
     velocity_variance = np.diagonal(out.state_cov[:, 4:7, 4:7], axis1=1, axis2=2)
     acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
-    columns = np.column_stack([
+    columns = [
         t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
         velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact, force_std(out.force_cov),
-    ])  # fmt: skip
-    return cloud(int(stamps[0]), frame_id, BATCH_OUTPUT_FIELDS, columns)
+    ]  # fmt: skip
+    names = BATCH_OUTPUT_FIELDS
+    if ring:
+        columns += [out.ring_speed, out.ring_speed_std]
+        names += RING_OUTPUT_FIELDS
+    return cloud(int(stamps[0]), frame_id, names, np.column_stack(columns))
 
 
 def diagnostic_status(

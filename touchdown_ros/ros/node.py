@@ -345,7 +345,7 @@ class EstimatorNode(Node):
                         for send, blob in zip(sends, row):
                             send(blob)
         if self.batched:
-            self.pub_batch.publish(messages.estimate_cloud(out, self.frame_id))
+            self.pub_batch.publish(messages.estimate_cloud(out, self.frame_id, self.config.law.spins_ring))
         published = time.time_ns()
         self._diagnostics.add_estimates(out, published)
         self._latency.add(published - stamps)
