@@ -32,7 +32,8 @@ from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters, rkhs_d
 from touchdown_ros.core.types import Coefficients, FilterNoise, Nominal, Rig
 from touchdown_ros.io.config import load_config
 
-CONFIG = load_config()
+#: The paper's friction and seven states, as `make_model`'s law and the hand-written references (filterpy, numpy).
+CONFIG = load_config(overrides={"contact.friction": "paper"})
 RIG = Rig(mass=200.0, eccentricity=1e-5, speed=500.0, radial_clearance=2e-4, axial_clearance=3e-4, gravity=9.81)
 NOMINAL = Nominal(k_R=1e8, c_R=2e4, mu=0.12, k_Z=3e8, c_Z=5e4, k_ZR=0.07)
 
