@@ -25,7 +25,7 @@ def records_of(coeffs, count=3, samples=500, seed=0):
     rng = np.random.default_rng(seed)
     records = []
     for b in range(count):
-        xi = jnp.array([3e-6 * b, -2e-6, 0.0, 0.0, 0.0, 0.0, 0.0])
+        xi = jnp.zeros(model.law.state_size).at[:2].set([3e-6 * b, -2e-6])
         states = []
         for _ in range(samples):
             for _ in range(10):
