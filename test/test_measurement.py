@@ -19,6 +19,7 @@ from touchdown_ros.core.ekf import Belief, ekf, model_measurement, position, upd
 from touchdown_ros.core.estimate import make_estimator
 from touchdown_ros.core.input_policy import InputPolicy, split_record
 from touchdown_ros.core.training import loss, make_batch
+from touchdown_ros.core.types import STATE_SIZE
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.offline import estimate_record
@@ -73,7 +74,7 @@ def test_the_general_update_equals_the_papers_h_when_no_effect_acts():
     model, noise, h = config.model(), config.noise, config.sample_period
     identity = model._replace(effects=library_effects(["sensor_gain_z", "sensor_offset_z"]))
     etas = jnp.asarray(np.asarray(XI[:3]) + 2e-6 * np.random.default_rng(0).standard_normal((200, 3)))
-    initial = Belief(XI.at[4:].set(0.0), jnp.diag(noise.initial))
+    initial = Belief(jnp.zeros(model.law.state_size).at[:4].set(XI[:4]), jnp.diag(noise.initial))
     paper = jax.jit(lambda e: ekf(model, noise, h, initial, e))(etas)
     with_effects = jax.jit(lambda e: ekf(identity, noise, h, initial, e))(etas)
     for a, b in zip(jax.tree.leaves(paper), jax.tree.leaves(with_effects)):
@@ -96,7 +97,9 @@ def test_measurement_regressor_is_the_force_it_stands_for():
     """In free flight phi's accelerations do not depend on position or velocity: a z gain g stands
     for the force (g - 1) m zddot = -(g - 1) m g_0, a z offset for none."""
     model = load_config().model()
-    free = jnp.array([[0.0, 0.0, 0.0, 0.3, 0.0, 0.0, -0.1], [1e-5, 2e-5, -5e-5, 2.0, 0.01, 0.0, 0.2]])
+    free = jnp.zeros((2, model.law.state_size)).at[:, :STATE_SIZE].set(
+        [[0.0, 0.0, 0.0, 0.3, 0.0, 0.0, -0.1], [1e-5, 2e-5, -5e-5, 2.0, 0.01, 0.0, 0.2]]
+    )
     J, f0 = effect_regressors(fx.LIBRARY["sensor_gain_z"], free, model)
     np.testing.assert_allclose(J[:, 2, 0], -model.rig.mass * model.rig.gravity, rtol=1e-12)
     np.testing.assert_array_equal(J[:, :2], 0.0)
@@ -104,7 +107,7 @@ def test_measurement_regressor_is_the_force_it_stands_for():
     J, _ = effect_regressors(fx.LIBRARY["sensor_offset_z"], free, model)
     np.testing.assert_array_equal(J, 0.0)
     # in axial contact the offset stands for the contact stiffness times it
-    contact = jnp.array([[0.0, 0.0, -model.rig.axial_clearance - 1e-6, 0.3, 0.0, 0.0, 0.0]])
+    contact = jnp.zeros((1, model.law.state_size)).at[0, :4].set([0.0, 0.0, -model.rig.axial_clearance - 1e-6, 0.3])
     J, _ = effect_regressors(fx.LIBRARY["sensor_offset_z"], contact, model)
     np.testing.assert_allclose(J[0, 2, 0], model.nominal.k_Z, rtol=1e-9)
 
