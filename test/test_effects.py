@@ -148,7 +148,7 @@ def test_trainer_fits_an_effect_parameter_only_where_the_bag_condition_switches_
         force = 2000.0 if loaded else 0.0
         truth = config.model(effects=config.effects.with_values({"axial_load": {"force": force}}))
         step = jax.jit(lambda s, truth=truth: rk4_step(truth, s, h / 10))
-        xi, states = jnp.array([2e-6 * b, -1e-6, 0.0, 0.0, 0.0, 0.0, 0.0]), []
+        xi, states = jnp.zeros(truth.law.state_size).at[:2].set([2e-6 * b, -1e-6]), []
         for _ in range(400):
             for _ in range(10):
                 xi = step(xi)
