@@ -50,9 +50,10 @@ def current_umask() -> int:
 def test_file_carries_its_calibration(tmp_path):
     """Contact law and constants, kernel (centres and scales) and filter noise come from the file,
     not from the YAML that loads it: the YAML holds guesses."""
+    law = ContactLaw.of("hertz", 1.5).with_friction(CONFIG.law.friction, CONFIG.law.slip_velocity)
     calibrated = CONFIG.calibrated(
         CONFIG.nominal._replace(k_R=3.0e11, c_Z=1.5e12),
-        ContactLaw.of("hertz", 1.5),
+        law,
         CONFIG.kernel._replace(scale_R=np.array([7e-6, 0.02]), T_Z=np.asarray(CONFIG.kernel.T_Z) + 0.5),
         CONFIG.noise._replace(
             measurement=np.array([1e-12, 2e-12, 3e-12]), process=np.asarray(CONFIG.noise.process) * 3
@@ -61,7 +62,7 @@ def test_file_carries_its_calibration(tmp_path):
     path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
     other_guess = load_config(overrides={"contact.k_R": 5.0e8, "kernel.width": 2.0, "filter.measurement_noise": 9e-6})
     loaded = load_coefficients(path, other_guess).config(other_guess)
-    assert loaded.law == ContactLaw.of("hertz", 1.5) and loaded.model().law == loaded.law
+    assert loaded.law == law and loaded.model().law == loaded.law
     assert loaded.nominal == calibrated.nominal
     for field in ("T_R", "T_Z", "scale_R", "scale_Z"):
         np.testing.assert_array_equal(getattr(loaded.kernel, field), getattr(calibrated.kernel, field))
@@ -76,9 +77,11 @@ def test_file_carries_its_calibration(tmp_path):
 
 
 def saved_with_law(path, law):
-    """A coefficient file of the reference rig calibrated with `law`, checked to load it back."""
+    """A coefficient file of the reference rig calibrated with `law` (the filter noise of its friction's state),
+    checked to load it back."""
+    noise = CONFIG.with_friction(law.friction).noise
     path = save_coefficients(
-        path, random_coeffs(), CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, CONFIG.noise), TrainingRecord()
+        path, random_coeffs(), CONFIG.calibrated(CONFIG.nominal, law, CONFIG.kernel, noise), TrainingRecord()
     )
     assert load_coefficients(path, CONFIG).config(CONFIG).law == law
     return path
