@@ -84,7 +84,7 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-12)
     states, nis = filtered_records(config.model(), config.noise, config.sample_period, chunks)
     all_states, all_nis = filtered_states(config.model(), config.noise, config.sample_period, whole)
-    assert states.shape == (5, max(lengths), 7)
+    assert states.shape == (5, max(lengths), config.law.state_size)
     np.testing.assert_allclose(states, np.asarray(all_states)[:5], rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(nis, np.asarray(all_nis)[:5], rtol=1e-9, equal_nan=True)
 
@@ -329,9 +329,9 @@ def test_calibration_says_when_the_papers_friction_came_out_at_hardly_any():
     from touchdown_ros.workflows.calibrate import LOW_FRICTION
 
     def calibration(mu, k_ZR, friction="paper"):
-        config = load_config(None)
+        config = load_config(None).with_friction(friction)
         return stage1_result(config.calibrated(
-            config.nominal._replace(mu=mu, k_ZR=k_ZR), config.law.with_friction(friction), config.kernel, config.noise
+            config.nominal._replace(mu=mu, k_ZR=k_ZR), config.law, config.kernel, config.noise
         ))
 
     said = calibration(0.0004, 0.0012).friction_note()
