@@ -55,6 +55,7 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     """The bag's /touchdown/* topics and the summary are of the smoother's estimate unless --filtered."""
     from touchdown_ros.core.estimate import force_std
     from touchdown_ros.core.metrics import relative_peak_error, rmse
+    from touchdown_ros.core.types import VELOCITY
 
     out = estimate_dir if answer == "smoothed" else filtered_dir
     estimate = exp_11_estimate.estimate
@@ -65,10 +66,12 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
 
     velocity = read_vector_topic(bag, "/touchdown/velocity")
     np.testing.assert_array_equal(velocity.stamps_ns, estimate.stamps_ns)
-    np.testing.assert_allclose(velocity.values, np.asarray(chosen.state)[:, 4:], rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(velocity.covariance, np.asarray(chosen.state_cov)[:, 4:, 4:], rtol=1e-12, atol=1e-24)
+    np.testing.assert_allclose(velocity.values, np.asarray(chosen.state)[:, VELOCITY], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        velocity.covariance, np.asarray(chosen.state_cov)[:, VELOCITY, VELOCITY], rtol=1e-12, atol=1e-24
+    )
     # the other estimate is far from it: filter and smoother differ by mm/s during the impacts
-    assert np.max(np.abs(velocity.values - np.asarray(other.state)[:, 4:])) > 1e-3
+    assert np.max(np.abs(velocity.values - np.asarray(other.state)[:, VELOCITY])) > 1e-3
     force = read_vector_topic(bag, "/touchdown/contact_force")
     np.testing.assert_allclose(force.values, np.asarray(chosen.force_xyz), rtol=1e-12, atol=1e-9)
     std = read_vector_topic(bag, "/touchdown/contact_force_std")
@@ -91,10 +94,10 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
         relative_peak_error(chosen.F_z, truth.contact_force[:, 2]), rel=1e-12
     )
     assert summary["truth"]["rmse_velocity_mps"] == pytest.approx(
-        rmse(chosen.state[:, 4:], truth.velocity).tolist(), rel=1e-12
+        rmse(chosen.state[:, VELOCITY], truth.velocity).tolist(), rel=1e-12
     )
     assert summary["truth"]["rmse_velocity_smoothed_mps"] == pytest.approx(
-        rmse(estimate.smoothed.state[:, 4:], truth.velocity).tolist(), rel=1e-12
+        rmse(estimate.smoothed.state[:, VELOCITY], truth.velocity).tolist(), rel=1e-12
     )
     assert f"**{'RTS smoother' if answer == 'smoothed' else 'EKF'} ({answer})**" in (out / "summary.md").read_text()
     noise = "the fitted Q x 1 (filter.smoothing_noise_scale)" if answer == "smoothed" else "the fitted Q, as the live"
