@@ -98,7 +98,7 @@ def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case):
 
 
 def test_the_ring_state_comes_from_the_friction_model_in_configuration_and_coefficient_files(tmp_path):
-    paper = load_config()
+    paper = load_config(overrides={"contact.friction": "paper"})
     ring = load_config(overrides={"contact.friction": "spinning_ring", "filter.ring_process_noise": 4.0})
     assert (len(paper.noise.process), len(paper.noise.initial)) == (STATE_SIZE, STATE_SIZE)
     assert ring.law.state_size == 8
