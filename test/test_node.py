@@ -462,7 +462,9 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     if output_mode == "per_sample":
         assert_recorded_estimates(recorded, expected, source)
         return
-    columns = np.concatenate([messages.cloud_columns(c, messages.BATCH_OUTPUT_FIELDS) for c in clouds])
+    ring = CONFIG.law.spins_ring
+    fields = messages.BATCH_OUTPUT_FIELDS + (messages.RING_OUTPUT_FIELDS if ring else ())
+    columns = np.concatenate([messages.cloud_columns(c, fields) for c in clouds])
     stamps = np.concatenate(
         [
             messages.stamp_ns_of(c.header.stamp)
@@ -471,7 +473,7 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
         ]
     )
     np.testing.assert_array_equal(stamps, expected.stamps_ns)
-    field = {name: i for i, name in enumerate(messages.BATCH_OUTPUT_FIELDS)}
+    field = {name: i for i, name in enumerate(fields)}
     filtered = expected.filtered
     compared = ((("x", "y", "z"), np.asarray(filtered.state)[:, :3]),
                 (("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:7]),
@@ -485,9 +487,11 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
                 (("radial_contact", "axial_contact"),
                  np.column_stack([filtered.radial_contact, filtered.axial_contact]).astype(float)),
                 (("std_fx", "std_fy", "std_fz"), force_std(np.asarray(filtered.force_cov))))
+    if ring:
+        compared += ((messages.RING_OUTPUT_FIELDS, np.column_stack([filtered.ring_speed, filtered.ring_speed_std])),)
     # every field of the batched output but t (checked through the stamps above), each against the offline estimate
-    assert {n for names, _ in compared for n in names} == set(messages.BATCH_OUTPUT_FIELDS) - {"t"}
-    assert not set(messages.RING_OUTPUT_FIELDS) & {f.name for f in clouds[0].fields}  # the paper's friction: no ring
+    assert {n for names, _ in compared for n in names} == set(fields) - {"t"}
+    assert {f.name for f in clouds[0].fields} == set(fields)  # the ring's speed only where the friction spins it
     for names, values in compared:
         assert_close(columns[:, [field[n] for n in names]], values, "/".join(names))
 
