@@ -6,6 +6,7 @@ import pytest
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import phi
+from touchdown_ros.core.types import THETA, X
 from touchdown_ros.io.config import load_config
 
 
@@ -28,7 +29,7 @@ _contact_push.parameters, _contact_push.contact = {"F": (100.0, "N", "push along
 def test_default_model_has_no_effects_and_axial_load_adds_force():
     model = load_config().model()
     assert len(model.effects) == 0
-    xi = jnp.array([0.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
+    xi = jnp.zeros(model.law.state_size).at[THETA].set(0.3)
     base = phi(model, xi)
     load = fx.resolve("axial_load")
     loaded = model._replace(effects=fx.Effects((load,), ({**load.defaults(), "force": 2000.0},)))
@@ -45,7 +46,8 @@ def test_a_force_through_the_contact_is_part_of_the_contact_force_and_counted_on
 
     model = load_config().model()
     rig = model.rig
-    xi = jnp.array([rig.radial_clearance + 10e-6, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0])  # 10 um into the bore
+    xi = jnp.zeros(model.law.state_size).at[THETA].set(0.3)
+    xi = xi.at[X].set(rig.radial_clearance + 10e-6)  # 10 um into the bore
     angle, load = fx.resolve("contact_angle_coupling"), fx.resolve("axial_load")
     assert angle.contact and not load.contact
     effects = fx.Effects((angle, load), ({"tan_beta": 0.2, "k_radial": 4e8}, {"force": 2000.0}))
@@ -66,7 +68,7 @@ def test_dotted_path_effect_is_jittable_and_differentiable():
     model = load_config().model()
     e = fx.Effects((fx.resolve(f"{__name__}:_user_force"),))
     assert e.values() == {"_user_force": {"F_a": 500.0}}
-    xi = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    xi = jnp.zeros(model.law.state_size)
 
     def zdd(effects):
         return jax.jit(phi)(model._replace(effects=effects), xi)[6]
@@ -186,7 +188,7 @@ def test_brake_decay_gives_the_braked_rotors_unbalance_with_its_lagging_angle():
     still = config.model(effects=fx.Effects((effect,), ({"rate": 0.0},)))
     for t in (0.0, 0.02, 0.15):
         theta = omega * t
-        xi = jnp.array([0.0, 0.0, 0.0, theta, 0.0, 0.0, 0.0])  # centred, free: the unbalance alone acts
+        xi = jnp.zeros(config.law.state_size).at[THETA].set(theta)  # centred, free: the unbalance alone acts
         w, angle = omega * (1.0 - 0.8 * t), omega * (t - 0.4 * t * t)
         np.testing.assert_allclose(np.asarray(effect.function(xi, {"rate": 0.8}, rig)), [w, angle], rtol=1e-12)
         np.testing.assert_allclose(

@@ -51,10 +51,12 @@ def test_sensor_effects_change_h_not_phi():
     assert fx.LIBRARY["sensor_gain_y"].parameters["gain"][1] == "1"
     assert fx.LIBRARY["sensor_offset_y"].parameters["offset"][1] == "m"
     assert all(fx.LIBRARY[f"sensor_{k}_{a}"].kind == fx.MEASUREMENT for k in ("gain", "offset") for a in "xyz")
-    np.testing.assert_array_equal(phi(sensed, XI), phi(model, XI))
+    n = model.law.state_size
+    xi = jnp.zeros(n).at[: len(XI)].set(XI)
+    np.testing.assert_array_equal(phi(sensed, xi), phi(model, xi))
     np.testing.assert_allclose(measurement(sensed, XI), [XI[0] + OFFSET, XI[1], GAIN * XI[2]], rtol=1e-15)
-    _, H = model_measurement(sensed)(XI)
-    np.testing.assert_allclose(H, np.eye(3, 7) * np.array([1.0, 1.0, GAIN])[:, None], rtol=1e-15)
+    _, H = model_measurement(sensed)(xi)
+    np.testing.assert_allclose(H, np.eye(3, n) * np.array([1.0, 1.0, GAIN])[:, None], rtol=1e-15)
     assert model_measurement(model) is position
     with pytest.raises(ValueError, match="kind"):
         fx.Effect("bad", _scaled_z, _scaled_z.parameters, kind="torque")

@@ -11,7 +11,7 @@ import yaml
 from conftest import central_differences
 
 from touchdown_ros.core import dynamics
-from touchdown_ros.core.dynamics import contact_forces, ring_speed_after, rk4_step, step_with_jacobian
+from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, Coefficients, ContactLaw, Nominal, Rig
 from touchdown_ros.io.coefficients import CoefficientFileError, content_sha256, load_coefficients, save_coefficients
 from touchdown_ros.io.coefficients import TrainingRecord
@@ -122,6 +122,18 @@ def test_the_ring_state_comes_from_the_friction_model_in_configuration_and_coeff
     mismatch = "process_noise has 7 values; contact.friction spinning_ring has a state of 8"
     with pytest.raises(CoefficientFileError, match=mismatch):
         load_coefficients(path, paper).config(paper)
+
+
+def test_a_state_without_the_rings_speed_is_refused_by_name():
+    """A seven-entry state handed to a spinning ring's model is refused: JAX would read the missing ring speed as
+    the state's last entry (zdot) and return numbers."""
+    ring = load_config(overrides={"contact.friction": "spinning_ring"}).model()
+    paper = load_config(overrides={"contact.friction": "paper"}).model()
+    with pytest.raises(ValueError, match="a state of 7 entries for contact.friction spinning_ring, whose state has 8"):
+        phi(ring, jnp.zeros(STATE_SIZE))
+    with pytest.raises(ValueError, match="a state of 8 entries for contact.friction paper, whose state has 7"):
+        contact_forces(paper, jnp.zeros(STATE_SIZE + 1))
+    assert phi(ring, jnp.zeros(STATE_SIZE + 1)).shape == (STATE_SIZE + 1,)
 
 
 @pytest.fixture(scope="module")

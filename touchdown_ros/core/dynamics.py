@@ -124,6 +124,11 @@ class _ContactState(NamedTuple):
 
 
 def _contact_state(model: Model, xi: Array) -> _ContactState:
+    if xi.shape[-1] != model.law.state_size:  # static: JAX would read a missing ring speed as another entry
+        raise ValueError(
+            f"a state of {xi.shape[-1]} entries for contact.friction {model.law.friction}, "
+            f"whose state has {model.law.state_size}"
+        )
     rig = model.rig
     x, y, z, _, xdot, ydot, zdot = xi[:STATE_SIZE]
     r, cos_a, sin_a = polar(x, y)
