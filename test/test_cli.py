@@ -106,9 +106,7 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     assert "model error in contact: the process noise read as a force" in (out / "summary.md").read_text()
 
 
-def test_estimate_with_a_spinning_ring_writes_the_rings_speed_and_the_papers_friction_does_not(
-    drop_bags, estimate_dir, tmp_path
-):
+def test_estimate_with_a_spinning_ring_writes_the_rings_speed_and_the_papers_friction_does_not(drop_bags, tmp_path):
     """With contact.friction: spinning_ring the bag has /touchdown/ring_speed, one message per sample as the
     other topics: twist.angular.z the smoother's ring speed (rad/s), covariance[35] its variance, all else
     zero; the ring starts at rest and is spun up to the rotor's speed. The paper's friction writes none."""
@@ -148,7 +146,10 @@ def test_estimate_with_a_spinning_ring_writes_the_rings_speed_and_the_papers_fri
     read = read_vector_topic(bag, "/touchdown/ring_speed", angular=True)
     assert read.angular and read.values.tobytes() == angular.tobytes()
 
-    assert "/touchdown/ring_speed" not in list_topics(estimate_dir / "exp_11_estimate")
+    paper = tmp_path / "paper"
+    assert main(["estimate", str(drop_bags / "exp_11"), "-p", "contact.friction:=paper", "--no-figures",
+                 "-o", str(paper)]) == 0
+    assert "/touchdown/ring_speed" not in list_topics(paper / "exp_11_estimate")
 
 
 def test_help_of_every_subcommand():
@@ -236,7 +237,7 @@ def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothin
     standard errors', the smoothing noise's and the model's force error's are compiled in the background
     thread from the rig YAML's shapes while stage 1 compiles and runs, before it has calibrated the values
     they are later called with (other constants, centres placed on the data): the calls find them and
-    compile nothing again."""
+    compile nothing again. With the paper's friction (a spinning ring's programs: the test below)."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
     watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_information)",
@@ -245,6 +246,7 @@ def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothin
     code, compiled = compilations(watched, lambda: main([
         "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
         "--duration", "0.043", "--steps", "0", "-p", "training.contact_laws:=[linear]",
+        "-p", "contact.friction:=paper",
     ]))
     assert code == 0
     assert sorted(name for name, _ in compiled) == sorted(watched)

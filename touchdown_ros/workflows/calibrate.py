@@ -408,6 +408,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             convergence = dataclasses.replace(
                 again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
                 seconds=convergence.seconds + again.seconds,
+                reason=f"{again.reason}; {convergence.steps} steps before a damping restart and {again.steps} after "
+                f"it, at most {settings.calibration_steps} each",
             )
         if settings.axial_support != "yielding":
             screened.append(
@@ -519,6 +521,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             convergence = dataclasses.replace(
                 again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
                 seconds=convergence.seconds + again.seconds,
+                reason=f"{again.reason}; {convergence.steps} steps before a friction restart and {again.steps} after "
+                f"it, at most {settings.calibration_steps} each",
             )
             stalled = False
         if c.yields and thorough and stalled and held_convergence.converged:
