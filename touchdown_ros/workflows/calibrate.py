@@ -250,6 +250,16 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
     return np.asarray(jax.jit(lambda b: jnp.sum(sample_errors(model, noise, h, b, kind), axis=1))(batch))
 
 
+def after_restart(first: Convergence, again: Convergence, restart: str, cap: int) -> Convergence:
+    """One fit's convergence from its run before a restart (`restart`: what restarted it) and the run after it:
+    the steps and seconds of both, the loss from the first start, the reason saying how the steps add up."""
+    return dataclasses.replace(
+        again, steps=first.steps + again.steps, initial_loss=first.initial_loss, seconds=first.seconds + again.seconds,
+        reason=f"{again.reason}; {first.steps} steps before a {restart} restart and {again.steps} after it, "
+        f"at most {cap} each",
+    )
+
+
 def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
     support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
@@ -405,12 +415,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
                 objective, restart, settings.calibration_steps, screen_tolerance,
                 f"calibrate {law.label}, restarted", stream, describe, bounds=coordinates.bounds(scales),
             )
-            convergence = dataclasses.replace(
-                again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
-                seconds=convergence.seconds + again.seconds,
-                reason=f"{again.reason}; {convergence.steps} steps before a damping restart and {again.steps} after "
-                f"it, at most {settings.calibration_steps} each",
-            )
+            convergence = after_restart(convergence, again, "damping", settings.calibration_steps)
         if settings.axial_support != "yielding":
             screened.append(
                 Candidate(criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence)
@@ -518,12 +523,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
                 f"calibrate {c.name}, refined from the friction restart", stream, describe,
                 bounds=c.coordinates.bounds(scales),
             )
-            convergence = dataclasses.replace(
-                again, steps=convergence.steps + again.steps, initial_loss=convergence.initial_loss,
-                seconds=convergence.seconds + again.seconds,
-                reason=f"{again.reason}; {convergence.steps} steps before a friction restart and {again.steps} after "
-                f"it, at most {settings.calibration_steps} each",
-            )
+            convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
             stalled = False
         if c.yields and thorough and stalled and held_convergence.converged:
             # No step from the held fit's end lowered the loss (the line search gave up there): that end
