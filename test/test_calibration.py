@@ -473,7 +473,7 @@ def test_stage1_scales_move_each_effect_by_the_rotor_weight_where_it_acts():
     model = load_config().model(effects=effects)
     rig = model.rig
     t = np.arange(1500) * 1e-4  # a 0.15 s record from the drop onset
-    states = np.zeros((len(t), 7))
+    states = np.zeros((len(t), model.law.state_size))
     states[:, 3] = rig.speed * t  # theta = 0 at the onset: the brake's force grows from zero
     states[:, 4], states[:, 5], states[:, 6] = 0.1 * np.sin(300 * t), 0.1 * np.cos(300 * t), -0.02
     weight = rig.mass * rig.gravity
