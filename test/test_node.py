@@ -28,7 +28,7 @@ from sensor_msgs.msg import PointCloud2
 
 from touchdown_ros.cli import main as touchdown
 from touchdown_ros.core.estimate import force_std
-from touchdown_ros.core.types import Coefficients
+from touchdown_ros.core.types import VELOCITY, Coefficients
 from touchdown_ros.io import cdr
 from touchdown_ros.io.bags import TopicSeries, list_topics, read_vector_topic, write_bag
 from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
@@ -477,13 +477,13 @@ def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp
     field = {name: i for i, name in enumerate(fields)}
     filtered = expected.filtered
     compared = ((("x", "y", "z"), np.asarray(filtered.state)[:, :3]),
-                (("vx", "vy", "vz"), np.asarray(filtered.state)[:, 4:7]),
+                (("vx", "vy", "vz"), np.asarray(filtered.state)[:, VELOCITY]),
                 (("ax", "ay", "az"), np.asarray(filtered.acceleration)),
                 (("fx", "fy", "fz"), np.asarray(filtered.force_xyz)),
                 (("fn", "ft"), np.column_stack([filtered.F_n, filtered.F_t])),
                 (("nis",), np.asarray(expected.nis)[:, None]),
                 (("var_vx", "var_vy", "var_vz"),
-                 np.diagonal(np.asarray(filtered.state_cov)[:, 4:7, 4:7], axis1=1, axis2=2)),
+                 np.diagonal(np.asarray(filtered.state_cov)[:, VELOCITY, VELOCITY], axis1=1, axis2=2)),
                 (("var_ax", "var_ay", "var_az"), np.diagonal(np.asarray(filtered.acceleration_cov), axis1=1, axis2=2)),
                 (("radial_contact", "axial_contact"),
                  np.column_stack([filtered.radial_contact, filtered.axial_contact]).astype(float)),

@@ -19,6 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import PointCloud2, PointField
 
 from touchdown_ros.core.estimate import force_std
+from touchdown_ros.core.types import VELOCITY
 from touchdown_ros.io import cdr
 from touchdown_ros.io.cdr import NS_PER_S, MessageError
 
@@ -145,10 +146,10 @@ def estimate_cloud(out, frame_id: str, ring: bool = False) -> PointCloud2:
     row (t in s after it); SI units, variances on the diagonal of each covariance."""
     stamps = out.stamps_ns
     t = (stamps - stamps[0]) / 1e9
-    velocity_variance = np.diagonal(out.state_cov[:, 4:7, 4:7], axis1=1, axis2=2)
+    velocity_variance = np.diagonal(out.state_cov[:, VELOCITY, VELOCITY], axis1=1, axis2=2)
     acceleration_variance = np.diagonal(out.acceleration_cov, axis1=1, axis2=2)
     columns = [
-        t, out.state[:, :3], out.state[:, 4:7], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
+        t, out.state[:, :3], out.state[:, VELOCITY], out.acceleration, out.force_xyz, out.F_n, out.F_t, out.nis,
         velocity_variance, acceleration_variance, out.radial_contact, out.axial_contact, force_std(out.force_cov),
     ]  # fmt: skip
     names = BATCH_OUTPUT_FIELDS
