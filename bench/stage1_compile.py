@@ -36,7 +36,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bags", nargs="+", type=Path)
     parser.add_argument("--calls", type=int, default=8)
-    parser.add_argument("--friction", default="paper", help="contact.friction of the model (default: the rig's)")
+    parser.add_argument("--friction", help="contact.friction of the model (default: the rig's)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         bags = args.bags
@@ -44,7 +44,7 @@ def main() -> int:
             simulate = [sys.executable, "-m", "touchdown_ros.cli", "simulate", "--experiment", "9", "11", "-o", tmp]
             subprocess.run(simulate, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             bags = [Path(tmp) / "exp_09", Path(tmp) / "exp_11"]
-        config = load_config(overrides={"contact.friction": args.friction})
+        config = load_config(overrides={"contact.friction": args.friction} if args.friction else None)
         data = load_training_data(config, bags)
         _, batch, chunks = stage1_batches(config, data, config.effects)
         h, noise = config.sample_period, config.noise

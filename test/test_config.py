@@ -111,7 +111,7 @@ def test_contact_law_and_training_settings(tmp_path):
     ring = load_config(overrides={"contact.friction": "co_rotating_ring", "contact.slip_velocity": 0.02})
     assert (ring.law.friction, ring.law.slip_velocity, ring.model().law) == ("co_rotating_ring", 0.02, ring.law)
     assert {(law.friction, law.slip_velocity) for law in ring.training.contact_laws} == {("co_rotating_ring", 0.02)}
-    assert load_config().law.friction == "paper"
+    assert load_config().law.friction == "spinning_ring"
     with pytest.raises(ConfigError, match="contact.friction"):
         load_config(overrides={"contact.friction": "sticky"})
     with pytest.raises(ConfigError, match="contact.slip_velocity"):
@@ -124,7 +124,8 @@ def test_config_reads_the_friction_models_stage_1_chooses_from_and_moves_a_rig_t
     its law, its candidate laws and the filter noise of its state (a spinning ring's speed is an eighth)."""
     assert load_config().training.friction_models == ()
     paper = load_config(overrides={"training.friction_models": ["paper", "spinning_ring", "paper"],
-                                   "filter.ring_process_noise": 2.0e-3, "contact.slip_velocity": 0.02})
+                                   "contact.friction": "paper", "filter.ring_process_noise": 2.0e-3,
+                                   "contact.slip_velocity": 0.02})
     assert paper.training.friction_models == ("paper", "spinning_ring")
     for wrong in ("spinning_ring", ["paper", "ring"], [1]):
         with pytest.raises(ConfigError, match="training.friction_models"):

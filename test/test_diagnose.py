@@ -371,15 +371,16 @@ def test_a_hidden_thrust_no_candidate_models_stays_unexplained_on_a_family_rig(
     assert z["rms_N"] > 200.0 and z["mean_by_phase_N"]["free flight"] > 200.0, z  # lifts the rotor: not a load
 
 
-def test_a_user_effect_by_dotted_path_sizes_the_unmodelled_thrust_and_the_axial_force_error_falls(
+def test_a_user_effect_by_dotted_path_fits_the_unmodelled_thrust_at_its_phase_and_the_axial_force_error_falls(
     family_thrust_bags, family_thrust_calibrated, tmp_path
 ):
     """Issue 16 item 5: the thrust no candidate models, written by the user as a plain jnp function
-    (`thrust` above) and registered by dotted path in the rig file, is fitted by stage 1 to its size
-    and phase (the truth is 500 cos(theta) N: a = 500, b = 0), and the axial contact-force error
-    against the truth falls when it is added (measured 2026-11-25: a = 516, b = 14 N; 0.81x). The 10 % holds on
-    this rig with the paper's friction; on other truths the fit through the filter gives 0.78-1.41x, and 1.36-1.62x
-    with a spinning ring's friction (docs/workbench.md, "The user's thrust", 2026-11-29)."""
+    (`thrust` above) and registered by dotted path in the rig file, is fitted by stage 1 at its phase (the
+    truth is 500 cos(theta) N: a = 500, b = 0) and the axial contact-force error against the truth falls when
+    it is added. Its size through the filter is loose: 0.78-1.41x the truth on seven truths with the paper's
+    friction (phases up to 97 deg off), 1.36-1.62x at the right phase with a spinning ring's (docs/workbench.md,
+    "The user's thrust", 2026-11-29); on this rig 516 N with the paper's friction, 719 N with the ring's. So the
+    size is asserted to its order (half to twice), the phase to 0.2 rad: the start, a = b = 300 N, is 45 deg off."""
     bags, rig, truths = family_thrust_bags
     parameters = yaml.safe_load(rig.read_text())
     parameters["/**"]["ros__parameters"]["effects"] = {
@@ -393,7 +394,7 @@ def test_a_user_effect_by_dotted_path_sizes_the_unmodelled_thrust_and_the_axial_
     fitted = load_coefficients(with_thrust, load_config(rig_with_thrust)).effects.values()["thrust"]
     amplitude, phase = float(np.hypot(fitted["a"], fitted["b"])), float(np.arctan2(fitted["b"], fitted["a"]))
     truth = float(np.mean([t.axial_thrust for t in truths]))
-    assert abs(amplitude - truth) < 0.1 * truth and abs(phase) < 0.2, fitted
+    assert 0.5 * truth < amplitude < 2.0 * truth and abs(phase) < 0.2, fitted
 
     out = tmp_path / "diagnosis"
     assert (
