@@ -345,10 +345,16 @@ def test_param_overrides_reach_the_rig_and_bad_ones_are_named(tmp_path, capsys):
 
 def test_the_demo_trains_table_1s_loader_and_brake_where_each_was_on_and_a_users_p_wins():
     """`touchdown demo` trains the axial loader and the brake as effects acting in the bags whose condition says
-    they were on (Table 1's test log); a `-p effects...` of the user's replaces that choice, not the reverse."""
+    they were on (Table 1's test log); a `-p effects...` of the user's replaces that choice, not the reverse.
+    `--paper-model` trains the paper's model: no effect and the paper's friction, whatever the YAML's default."""
     from touchdown_ros.cli import demo_training_config, parameter_overrides
 
     trained = demo_training_config(None, {})
     assert {e.name: e.when for e in trained.effects.effects} == {"axial_load": "axial_load", "brake_decay": "brake"}
+    assert trained.law.friction == load_config().law.friction
     users = demo_training_config(None, parameter_overrides(["effects.active:=[axial_load]"]))
     assert [e.name for e in users.effects.effects] == ["axial_load"]
+    paper = demo_training_config(None, {}, paper_model=True)
+    assert (paper.law.friction, paper.effects.effects) == ("paper", ())
+    ring = demo_training_config(None, parameter_overrides(["contact.friction:=spinning_ring"]), paper_model=True)
+    assert ring.law.friction == "spinning_ring"

@@ -185,9 +185,12 @@ DEMO_EFFECTS = {
 }
 
 
-def demo_training_config(path: Path | None, overrides: dict) -> Config:
+def demo_training_config(path: Path | None, overrides: dict, paper_model: bool = False) -> Config:
     """The rig `touchdown demo` trains: `DEMO_EFFECTS` switched on, unless the user's `-p` sets any `effects.*`:
-    then the user's effects alone."""
+    then the user's effects alone. `paper_model`: the paper's model, its friction (the inner ring at rest) and
+    no effects but the user's; a `-p contact.friction` of the user's wins."""
+    if paper_model:
+        return load_config(path, {"contact.friction": "paper", **overrides})
     chosen = any(name.startswith("effects.") for name in overrides)
     return load_config(path, overrides if chosen else {**DEMO_EFFECTS, **overrides})
 
@@ -203,7 +206,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     all_bags = sorted(bags.glob("exp_*"))
     coeffs = None
     if not args.quick:
-        trained = config if args.paper_model else demo_training_config(args.config, overrides)
+        trained = demo_training_config(args.config, overrides, args.paper_model)
         coeffs = out / "coefficients.yaml"
         _trained(
             commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs
@@ -331,7 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--paper-model",
         action="store_true",
-        help="train the paper's model alone (without the Table 1 axial-load and brake effects)",
+        help="train the paper's model alone: its friction (the inner ring at rest, eq. 6b, 6c, 8b; unless -p "
+        "contact.friction:=...) without the Table 1 axial-load and brake effects",
     )
     p.set_defaults(run=cmd_demo)
 
