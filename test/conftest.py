@@ -2,6 +2,7 @@
 library effects by name, and a watch on XLA compilations."""
 from __future__ import annotations
 
+import gc
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -16,6 +17,43 @@ from touchdown_ros.sim.bags import write_drop_bag
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.record import DropRecord
 from touchdown_ros.sim.simulator import simulate_drop
+
+
+#: Memory maps of this process above which the compiled programs are let go after a test. XLA's CPU code stays
+#: mapped while a jit cache holds it (three or more maps per compiled function); the kernel allows 65530 maps per
+#: process (vm.max_map_count). The whole suite in one process grew past 37 000 maps and 10 GB inside
+#: test_diagnose.py alone, and with the spinning ring's larger programs an XLA compilation aborted the process
+#: half-way through the suite (2026-11-29).
+MAPS_TO_LET_GO = 20_000
+
+
+def _memory_maps() -> int:
+    """Memory maps of this process (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+def _let_go_of_compiled_programs() -> None:
+    jax.clear_caches()
+    gc.collect()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _compiled_programs_let_go_after_each_file():
+    """Each test file's compiled programs are let go when it ends (`MAPS_TO_LET_GO`)."""
+    yield
+    _let_go_of_compiled_programs()
+
+
+@pytest.fixture(autouse=True)
+def _compiled_programs_let_go_after_a_test_past_the_limit():
+    """Within a file, the compiled programs are let go after a test that leaves more than `MAPS_TO_LET_GO` maps."""
+    yield
+    if _memory_maps() > MAPS_TO_LET_GO:
+        _let_go_of_compiled_programs()
 
 
 def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config | None = None,
