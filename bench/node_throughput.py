@@ -82,7 +82,7 @@ def drop_cycle(sample_period: float, seed: int = 0, signal: str = "cycle", cycle
     substeps = 10
     h = sample_period / substeps
     n = lambda seconds: int(round(seconds / sample_period))  # noqa: E731
-    xi0 = jnp.array([0.0, 0.0, 0.0, 0.0, 0.005, 0.0, 0.0])
+    xi0 = jnp.zeros(model.law.state_size).at[4].set(0.005)  # a spinning ring (8 states) at rest at the drop
 
     def per_sample(xi, _):
         xi = jax.lax.fori_loop(0, substeps, lambda i, s: rk4_step(model, s, h), xi)
