@@ -11,6 +11,7 @@ against the simulator's truth.
 
     .venv/bin/python bench/calibration_family.py [--variants a,b] [--train 3] [--test 2]
         [--loss nll|one_step] [--out DIR] [-p contact.friction:=spinning_ring ...]
+        [--truth simulator.ceramic.ring_inertia:=9.0e-3 --truth rig.radial_clearance:=0.26e-3 ...]
 
 Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.
 Figures per held-out bag: peak axial / radial force error (%), force RMSE over the peak force
@@ -103,12 +104,15 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
 
 def run_variant(
     name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough",
-    overrides: dict | None = None,
+    overrides: dict | None = None, truth: dict | None = None,
 ) -> dict:
     """Simulate, train and estimate one rig; `overrides` (dotted keys) change the estimator's
-    configuration (the rig's guess, its friction model, ...), not the simulator's."""
-    v = variant(name)
-    config = load_config(overrides={**dict(v.overrides), **(overrides or {})})
+    configuration (the rig's guess, its friction model, ...), not the simulator's; `truth`
+    (`simulator.*` or `rig.*` keys) changes the rig's truth only: the estimator keeps the variant's
+    rig YAML (a user's drawing that is off)."""
+    told = variant(name)
+    v = replace(told, overrides={**told.overrides, **(truth or {})})
+    config = load_config(overrides={**dict(told.overrides), **(overrides or {})})
     config = replace(config, training=replace(config.training, loss=loss, search=search))
     bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
     coeffs_path = out / name / f"coefficients_{loss}.yaml"
@@ -133,6 +137,7 @@ def run_variant(
         "description": v.description,
         "loss": loss,
         "overrides": overrides or {},
+        "truth": truth or {},
         "train_seconds": round(seconds, 1),
         "law": calibrated.law.label + ("" if calibrated.law.friction == "paper" else f"; {calibrated.law.friction}"),
         "friction_models": list(cal.frictions) if cal else [],
@@ -208,8 +213,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
     parser.add_argument("-p", dest="parameters", action="append", default=[], metavar="NAME:=VALUE",
                         help="estimator parameter for every rig (e.g. contact.friction:=spinning_ring)")
+    parser.add_argument("--truth", action="append", default=[], metavar="NAME:=VALUE",
+                        help="the rig's truth for every rig, simulated but not told to the estimator "
+                             "(e.g. simulator.ceramic.ring_inertia:=9.0e-3, rig.radial_clearance:=0.26e-3)")
     args = parser.parse_args(argv)
     overrides = parameter_overrides(args.parameters)
+    truth = parameter_overrides(args.truth)
+    if any(not key.startswith(("simulator.", "rig.")) for key in truth):
+        parser.error("--truth takes simulator.* and rig.* names only (the estimator's settings are -p)")
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for name in args.variants.split(","):
@@ -219,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides))
+        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth))
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
     text = table(results) + "\n" + anatomy_table(results)
