@@ -131,6 +131,14 @@ def _trained(outcome, bags: int, out: Path) -> None:
             )
             + (f"; held by the prior: {', '.join(calibration.held_by_prior)}" if calibration.held_by_prior else "")
         )
+        changes = calibration.clearance_changes()
+        if changes:
+            rig = outcome.config.contact_rig
+            print("clearances (the rig YAML's + the fitted change): " + ", ".join(
+                f"{name} {getattr(rig, name) * 1e6:.1f} um ({change * 1e6:+.1f}, "
+                f"+-{calibration.clearance_sd.get(name, float('nan')) * 1e6:.1f} um)"
+                for name, change in changes.items()
+            ))
         for note in calibration.notes():
             print(note)
     converged = pkbkr.convergence is not None and pkbkr.convergence.converged

@@ -1,12 +1,14 @@
 """Stage 1 of identification: the nominal contact law and its constants f0 from displacements.
 
 The six constants (k_R, c_R, mu, k_Z, c_Z, k_ZR: positive) are fitted on a log scale,
-together with two factors on the process noise Q (radial and axial block, `nll` loss only)
-and the active effects' parameters (each divided by the change that moves its effect's force by
-the rotor's weight rms along the data, `data_scales`; no prior), by minimising
+together with two factors on the process noise Q (radial and axial block, `nll` loss only),
+the active effects' parameters (each divided by the change that moves its effect's force by
+the rotor's weight rms along the data, `data_scales`; no prior) and the changes of the radial and
+axial clearances r0, z0 from the rig YAML's (in units of CLEARANCE_UNIT), by minimising
 
     J = [sum over samples of the output error (core.training)
-         + sum_i ((ln f0_i - ln guess_i) / prior_width)^2 + sum_j (ln q_j / Q_PRIOR_WIDTH)^2] / N
+         + sum_i ((ln f0_i - ln guess_i) / prior_width)^2 + sum_j (ln q_j / Q_PRIOR_WIDTH)^2
+         + sum_c (delta_c / clearance_width)^2] / N
 
 that is, with the `nll` loss, twice the negative log-posterior per sample under a
 log-normal prior around the rig YAML's guess. The prior holds what the data cannot
@@ -35,7 +37,7 @@ from touchdown_ros.core.diagnostics.regressors import library_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
 from touchdown_ros.core.training import RECORDS, Batch, innovations, output_error
-from touchdown_ros.core.types import PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Kernel, Model, Nominal
+from touchdown_ros.core.types import PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
 
 #: Which Q entries each noise factor scales: radial (x, y, xdot, ydot) and axial (z, zdot); theta stays.
 Q_BLOCKS = ((0, 1, 4, 5), (2, 6))
@@ -44,6 +46,11 @@ Q_NAMES = ("q_radial", "q_axial")
 Q_PRIOR_WIDTH = 3.0
 #: Parameters whose posterior sd is at least this share of the prior sd are "held by the prior".
 HELD_BY_PRIOR = 0.5
+#: Names of the clearance coordinates (`Stage1.clearance`): the changes of r0 and z0 from the rig YAML's.
+CLEARANCE_NAMES = ("radial_clearance", "axial_clearance")
+#: Metres per clearance coordinate: a step of one moves a contact of tens of micrometres' deformation
+#: about as much as a step of one in ln k does.
+CLEARANCE_UNIT = 1.0e-5
 #: Stiffness and damping of the normal force, by position in `PARAMETER_NAMES`.
 _STIFFNESS, _DAMPING = (0, 3), (1, 4)
 
@@ -56,6 +63,7 @@ class Stage1(NamedTuple):
     effects: Effects  # active effects, parameters divided by their scales
     log_support: Array | None = None  # (2,) ln of the axial support's preload and span (N); None: the law's;
     # +inf: rigid (so rigid and yielding candidates are one program: `RIGID_LOG_SUPPORT`)
+    clearance: Array | None = None  # (2,) r0 and z0 minus the rig YAML's, in CLEARANCE_UNIT; None: the YAML's
 
 
 #: Names of the axial support's coordinates (`Stage1.log_support`).
@@ -144,9 +152,19 @@ def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Eff
 
 def stage1_start(log_f0: Array, effects: Effects, scales: Effects, log_support: Array | None = None) -> Stage1:
     """Stage 1's coordinates at the start: ln f0 as given, Q as the YAML's (factors 1), the effects'
-    parameters over their scales, the support as given (None: the law's)."""
+    parameters over their scales, the support as given (None: the law's), the clearances the YAML's."""
     scaled = apply_scales(effects, scales, inverse=True)
-    return Stage1(jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support)
+    return Stage1(jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support, jnp.zeros(len(CLEARANCE_NAMES)))
+
+
+def with_clearances(rig: Rig, clearance: Array | None) -> Rig:
+    """`rig` with r0 and z0 moved by the clearance coordinates (`Stage1.clearance`; None: as it is)."""
+    if clearance is None:
+        return rig
+    return rig._replace(
+        radial_clearance=rig.radial_clearance + CLEARANCE_UNIT * clearance[0],
+        axial_clearance=rig.axial_clearance + CLEARANCE_UNIT * clearance[1],
+    )
 
 
 def scaled_bounds(tree, scales: Effects) -> list[tuple[float, float]]:
@@ -176,6 +194,7 @@ def stage1_model_and_noise(
     """The model (constant parameters, alpha = 0) and filter noise at stage-1 coordinates theta."""
     law = base.law if theta.log_support is None else support_law(base.law, theta.log_support)
     model = base._replace(
+        rig=with_clearances(base.rig, theta.clearance),
         law=law,
         nominal=nominal_of(theta.log_f0),
         coeffs=base.coeffs._replace(
@@ -198,16 +217,19 @@ def stage1_objective(
     kind: str,
     mesh=None,
     prior_weight: float | Array = 1.0,
+    clearance_width: float = 1.0,
 ) -> Array:
     """J of the module docstring at theta (per valid sample), the prior weighted by prior_weight
     (1/C for each of C chunks of the records: `stage1_value_and_grad_over`)."""
     model, fitted_noise = stage1_model_and_noise(theta, base, noise, scales)
     data = output_error(model, fitted_noise, h, batch, mesh, kind)
     prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
+    if theta.clearance is not None:
+        prior = prior + jnp.sum((theta.clearance / clearance_width) ** 2)
     return data + prior_weight * prior / jnp.sum(batch.valid)
 
 
-@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
+@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh", "clearance_width"))
 def stage1_value(
     theta: Stage1,
     guess_log_f0: Array,
@@ -221,16 +243,19 @@ def stage1_value(
     kind: str,
     mesh: Mesh | None = None,
     prior_weight: float | Array = 1.0,
+    clearance_width: float = 1.0,
 ) -> Array:
     """`stage1_objective`, compiled once per (prior width, h, loss, mesh) and batch shape: the model,
     noise, scales, records (their effects' gates too) and prior weight are traced, so other values
     reuse it. Alone where only losses are compared (start grids, restarts): the filter without its
     gradient, about a quarter of `stage1_value_and_grad`'s call (23 against 99 ms on six campaign
     records) and a seventh of its compilation."""
-    return stage1_objective(theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh, prior_weight)
+    return stage1_objective(
+        theta, guess_log_f0, prior_width, base, noise, scales, h, batch, kind, mesh, prior_weight, clearance_width
+    )
 
 
-@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh"))
+@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh", "clearance_width"))
 def stage1_value_and_grad(theta: Stage1, *arguments, **static) -> tuple[Array, Stage1]:
     """`stage1_value` (the same arguments) and its gradient by theta."""
     return jax.value_and_grad(stage1_value.__wrapped__)(theta, *arguments, **static)
@@ -280,6 +305,8 @@ class Coordinates:
     as one flat vector; the other entries keep their values in `start`."""
 
     def __init__(self, start: Stage1, flags: Stage1):
+        if start.clearance is None:  # a start without clearance coordinates: the YAML's r0 and z0, held
+            flags = flags._replace(clearance=None)
         flat, self._unravel = ravel_pytree(start)
         self.start = np.asarray(flat, dtype=float)
         leaves, self._treedef = jax.tree_util.tree_flatten(start)
@@ -295,6 +322,7 @@ class Coordinates:
                 tuple(f"{e.name}.gate" for e in start.effects.effects),
             ),
             None if start.log_support is None else list(SUPPORT_NAMES),
+            None if start.clearance is None else list(CLEARANCE_NAMES),
         )
         self.names = [n for n, f in zip(jax.tree_util.tree_leaves(labels), self.free) if f]
 
@@ -343,11 +371,12 @@ class Coordinates:
         """(low, high) of each free coordinate (`scaled_bounds`)."""
         return [b for b, free in zip(scaled_bounds(self._unravel(self.start), scales), self.free) if free]
 
-    def prior_sd(self, prior_width: float) -> np.ndarray:
-        """Prior sd of each free coordinate: prior_width for ln f0, Q_PRIOR_WIDTH for ln q, none (inf) for effects."""
-        return np.asarray(
-            [prior_width if n in PARAMETER_NAMES else Q_PRIOR_WIDTH if n in Q_NAMES else np.inf for n in self.names]
-        )
+    def prior_sd(self, prior_width: float, clearance_width: float = 1.0) -> np.ndarray:
+        """Prior sd of each free coordinate: prior_width for ln f0, Q_PRIOR_WIDTH for ln q, clearance_width for
+        the clearances, none (inf) for effects and the support."""
+        widths = {**dict.fromkeys(PARAMETER_NAMES, prior_width), **dict.fromkeys(Q_NAMES, Q_PRIOR_WIDTH),
+                  **dict.fromkeys(CLEARANCE_NAMES, clearance_width)}
+        return np.asarray([widths.get(n, np.inf) for n in self.names])
 
 
 def stage1_flags(
@@ -356,10 +385,12 @@ def stage1_flags(
     fit_f0: bool = True,
     fitted_effects: Sequence[str] | None = None,
     fit_support: bool | None = None,
+    fit_clearances: bool = False,
 ) -> Stage1:
     """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q), the parameters of the
-    effects named in fitted_effects (default: all), never the gates, and the axial support
-    (fit_support True: free, False: held at its start's `log_support`, None: the start has none)."""
+    effects named in fitted_effects (default: all), never the gates, the axial support
+    (fit_support True: free, False: held at its start's `log_support`, None: the start has none)
+    and the clearances (fit_clearances)."""
     chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
     return Stage1(
         jnp.full(len(PARAMETER_NAMES), float(fit_f0)),
@@ -370,6 +401,7 @@ def stage1_flags(
             (0.0,) * len(effects),
         ),
         None if fit_support is None else jnp.full(len(SUPPORT_NAMES), float(fit_support)),
+        jnp.full(len(CLEARANCE_NAMES), float(fit_clearances)),
     )
 
 

@@ -123,6 +123,9 @@ def save_coefficients(
             "slip_velocity": float(config.law.slip_velocity),  # m/s
             "units": _contact_units(config),
             **{name: float(value) for name, value in config.nominal._asdict().items()},
+            # m, r0 and z0 as stage 1 calibrated them (the rig YAML's rig.*_clearance moved); absent: the YAML's
+            **({"radial_clearance": float(config.clearances[0]), "axial_clearance": float(config.clearances[1])}
+               if config.clearances is not None else {}),
         },
         "kernel": {
             "width": float(config.kernel.width),
@@ -373,7 +376,24 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         if (array < 0.0).any():
             raise CoefficientFileError(f"{path}: filter.force_model_variance must be 3 numbers >= 0 (N^2 per axis)")
         variance = tuple(float(v) for v in array)
-    return config.calibrated(Nominal(*values), law, kernel, noise, float(scale), variance)
+    return config.calibrated(Nominal(*values), law, kernel, noise, float(scale), variance, _clearances(path, contact))
+
+
+def _clearances(path: Path, contact: Mapping[str, Any]) -> tuple[float, float] | None:
+    """contact.radial_clearance and contact.axial_clearance (m), both or neither (files before 2026-11-29, or
+    trained with training.clearance_tolerance 0: the rig YAML's)."""
+    names = ("radial_clearance", "axial_clearance")
+    present = [n for n in names if n in contact]
+    if not present:
+        return None
+    values = [contact.get(n) for n in names]
+    if len(present) < 2 or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0 for v in values
+    ):
+        raise CoefficientFileError(
+            f"{path}: contact.radial_clearance and contact.axial_clearance must both be numbers > 0 m (or both absent)"
+        )
+    return float(values[0]), float(values[1])
 
 
 def _load_effects(path: Path, table: Any) -> Effects:

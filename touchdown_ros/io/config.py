@@ -71,6 +71,8 @@ class TrainingSettings:
     # contact.friction only
     friction_models: tuple[str, ...] = ()
     prior_width: float = 1.6  # sd of ln f0 around the guess (ln 5: a guess 5x off is one sd)
+    # m, sd of r0 and z0 around rig.*_clearance (drawing tolerances, thermal growth); 0: given exactly, not fitted
+    clearance_tolerance: float = 25.0e-6
     reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
     placement: str = "data"  # kernel centres: data (from the calibrated estimates) | fixed (kernel.* grid)
     calibration_steps: int = 200  # cap on stage-1 L-BFGS iterations (it stops at convergence first)
@@ -160,18 +162,27 @@ class Config:
     parameters: Mapping[str, Any] = field(default_factory=dict)  # flat dotted ROS parameters
     node: NodeSettings = field(default_factory=NodeSettings)  # the live node's node.* parameters
     effects: Effects = field(default_factory=Effects)  # add-on force terms switched on in effects.*
+    # m, (r0, z0) as stage 1 calibrated them (a coefficient file's); None: rig.*_clearance as the YAML gives them
+    clearances: tuple[float, float] | None = None
 
     def model(self, coeffs: Coefficients | None = None, effects: Effects | None = None) -> Model:
         """The estimator's model: all alpha = 0 (constant baseline) unless coeffs are given,
         with this rig's effects unless others are given (a coefficient file's)."""
         return Model(
-            self.rig,
+            self.contact_rig,
             self.nominal,
             self.kernel,
             coeffs or Coefficients.zeros(self.kernel),
             self.effects if effects is None else effects,
             self.law,
         )
+
+    @property
+    def contact_rig(self) -> Rig:
+        """The rig the model's contacts see: the YAML's, with the calibrated clearances where a file gives them."""
+        if self.clearances is None:
+            return self.rig
+        return self.rig._replace(radial_clearance=self.clearances[0], axial_clearance=self.clearances[1])
 
     def training_noise(self) -> FilterNoise:
         """The filter noise used by the training loss: Q scaled by training.process_noise_scale."""
@@ -223,9 +234,10 @@ class Config:
         noise: FilterNoise,
         smoothing_noise_scale: float = 1.0,
         force_model_variance: tuple[float, float, float] | None = None,
+        clearances: tuple[float, float] | None = None,
     ) -> "Config":
-        """This rig with identified contact constants, law, kernel, filter noise and the model's force
-        error (a coefficient file's)."""
+        """This rig with identified contact constants, law, kernel, filter noise, the model's force
+        error and clearances (m, r0 and z0; None: the YAML's) (a coefficient file's)."""
         if not len(noise.process) == len(noise.initial) == law.state_size:
             raise ValueError(
                 f"contact.friction {law.friction} has a state of {law.state_size}, the filter noise "
@@ -233,7 +245,7 @@ class Config:
             )
         return replace(
             self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale,
-            force_model_variance=force_model_variance,
+            force_model_variance=force_model_variance, clearances=clearances,
         )
 
     def with_friction(self, friction: str) -> "Config":
@@ -456,6 +468,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         contact_laws=candidates or (law,),
         friction_models=_friction_models(read),
         prior_width=read.number("training.prior_width", d.prior_width, positive=True),
+        clearance_tolerance=read.number("training.clearance_tolerance", d.clearance_tolerance, non_negative=True),
         reference_deformation=read.number("training.reference_deformation", d.reference_deformation, positive=True),
         placement=read.choice("kernel.placement", d.placement, PLACEMENTS),
         calibration_steps=read.integer("training.calibration_steps", d.calibration_steps),

@@ -12,6 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from touchdown_ros.core.calibration import (
+    CLEARANCE_NAMES,
+    CLEARANCE_UNIT,
     HELD_BY_PRIOR,
     RIGID_LOG_SUPPORT,
     SUPPORT_NAMES,
@@ -93,6 +95,13 @@ class Calibration:
     criterion: float = 0.0  # the chosen fit's information criterion (AIC or BIC, up to a constant of the bags)
     # with several `training.friction_models`: each one's fit (friction, law, loss, criterion above the best, s)
     frictions: tuple[dict[str, Any], ...] = ()
+    clearance_sd: dict[str, float] = dataclasses.field(default_factory=dict)  # m, posterior sd of r0 and z0
+
+    def clearance_changes(self) -> dict[str, float]:
+        """m, the calibrated r0 and z0 minus the rig YAML's (empty where they were not fitted)."""
+        calibrated = self.config.contact_rig
+        return {n: float(getattr(calibrated, n)) - float(getattr(self.config.rig, n))
+                for n in CLEARANCE_NAMES if self.config.clearances is not None}
 
     def summary(self) -> dict[str, Any]:
         """Plain data for the coefficient file, with the notes `train` prints (`notes`)."""
@@ -103,6 +112,10 @@ class Calibration:
             "guess": {k: float(v) for k, v in self.guess._asdict().items()},
             "calibrated": {k: float(v) for k, v in nominal._asdict().items()},
             "relative_standard_error": {k: round(v, 6) for k, v in self.relative_sd.items()},
+            **({"clearances_m": {n: {"calibrated": float(getattr(self.config.contact_rig, n)),
+                                     "yaml": float(getattr(self.config.rig, n)),
+                                     "standard_error": self.clearance_sd.get(n)}
+                                 for n in CLEARANCE_NAMES}} if self.config.clearances is not None else {}),
             "held_by_prior": list(self.held_by_prior),
             "strongest_correlations": [[a, b, round(r, 4)] for a, b, r in self.correlations],
             "sensor_noise_m": [float(v) for v in self.sensor_noise],
@@ -285,20 +298,22 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     scales = start_scales(config.model(), noise, h, chunks)
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll"
+    fit_clearances = settings.clearance_tolerance > 0.0
+    clearance_width = settings.clearance_tolerance / CLEARANCE_UNIT if fit_clearances else 1.0
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
     # support rigid or as given (held), or yielding (free).
     given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
     held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
     start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support))
-    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False))
+    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False, fit_clearances=fit_clearances))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
     # The standard errors' tangents are padded to the most coordinates a candidate frees (with a
     # yielding support), so one program, compiled while the laws are fitted, serves the chosen one.
-    most_free = len(Coordinates(start, stage1_flags(effects, fit_q, fit_support=True)).names)
+    most_free = len(Coordinates(start, stage1_flags(effects, fit_q, fit_support=True, fit_clearances=fit_clearances)).names)
     initial_theta = start_coordinates.theta(start_coordinates.initial())
     ahead.compile(
         INFORMATION_PROGRAM, stage1_information, initial_theta, start_coordinates.directions(most_free),
@@ -321,13 +336,20 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         return with_state_size(batch, STATE_SIZE) if spinning else batch
 
     def describe(x: np.ndarray) -> str:
-        """f0 (the first free coordinates) and, when there are two more at the end, the support."""
+        """f0 (the first free coordinates), the support when its two are free too (before the clearances) and
+        the clearances' changes (the last two, when fitted)."""
         text = "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, np.exp(x[: len(PARAMETER_NAMES)])))
+        clearances = len(CLEARANCE_NAMES) if fit_clearances else 0
         if len(x) == len(start_coordinates.names) + len(SUPPORT_NAMES):
-            text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, x[-2:]))
+            support = x[len(x) - clearances - len(SUPPORT_NAMES): len(x) - clearances]
+            text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, support))
+        if clearances:
+            text += "  " + "  ".join(
+                f"{n} {c * CLEARANCE_UNIT * 1e6:+.1f} um" for n, c in zip(CLEARANCE_NAMES, x[-clearances:])
+            )
         return text
 
-    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh)
+    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_width)
 
     def problem(
         law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates, screened: bool = False
@@ -353,7 +375,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     def with_support_at(coordinates: Coordinates, theta: Stage1, log_support) -> np.ndarray:
         """The free coordinates of theta's constants (f0, Q, effects) with the support `log_support`."""
         return coordinates.initial(log_f0=theta.log_f0, log_q=theta.log_q, effects=theta.effects,
-                                   log_support=jnp.asarray(log_support))
+                                   log_support=jnp.asarray(log_support), clearance=theta.clearance)
 
     def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
         """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
@@ -363,7 +385,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         if not starts:
             return None
         with_support = Coordinates(
-            start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True)
+            start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True, fit_clearances=fit_clearances)
         )
         supported = problem(law, (records,), with_support, screened=True)
         x0 = min((with_support_at(with_support, theta_rigid, s) for s in starts), key=supported.loss)
@@ -500,7 +522,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             # The constants first, the support held at its screened knee: moved together, a constant
             # still far from its optimum (damping, on few bags) can carry the knee above every impact,
             # where the loss no longer depends on it and it stays.
-            held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False))
+            held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False, fit_clearances=fit_clearances))
             x_held, held_convergence = minimise(
                 problem(c.law, chunks, held).objective, held.initial(), settings.calibration_steps, settings.tolerance,
                 f"calibrate {c.name}, refined with the support held", stream, describe, bounds=held.bounds(scales),
@@ -564,9 +586,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     information = stage1_information_over(
         chunks, theta, coordinates.directions(most_free), law_model(law), noise, scales, h, kind, mesh
     )[:free, :free]
-    covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width))
+    covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_width))
     sd, correlation = standard_errors_and_correlation(covariance)
-    relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd)}
+    relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd) if n not in CLEARANCE_NAMES}
+    clearance_sd = {n: float(v) * CLEARANCE_UNIT for n, v in zip(coordinates.names, sd) if n in CLEARANCE_NAMES}
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
     held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
@@ -575,9 +598,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             float(model.law.support_preload), float(model.law.support_span),
             support_log_covariance(coordinates.names, covariance),
         )
+    clearances = (float(model.rig.radial_clearance), float(model.rig.axial_clearance)) if fit_clearances else None
     return Calibration(
-        config=config.calibrated(Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise),
+        config=config.calibrated(
+            Nominal(*(float(v) for v in model.nominal)), law, config.kernel, fitted_noise, clearances=clearances
+        ),
         effects=model.effects,
+        clearance_sd=clearance_sd,
         guess=guess,
         relative_sd=relative_sd,
         held_by_prior=held,
