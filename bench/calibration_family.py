@@ -230,7 +230,9 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        results.append(run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth))
+        results.append(
+            run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth)
+        )
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
     text = table(results) + "\n" + anatomy_table(results)

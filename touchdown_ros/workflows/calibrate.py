@@ -306,14 +306,19 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
     held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
     start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support))
-    coordinates = start_coordinates = Coordinates(start, stage1_flags(effects, fit_q, fit_support=False, fit_clearances=fit_clearances))
+
+    def flags(support: bool) -> Stage1:
+        """The free coordinates of a candidate: f0, Q (nll), the effects, the clearances, the support if `support`."""
+        return stage1_flags(effects, fit_q, fit_support=support, fit_clearances=fit_clearances)
+
+    coordinates = start_coordinates = Coordinates(start, flags(support=False))
 
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
     # The standard errors' tangents are padded to the most coordinates a candidate frees (with a
     # yielding support), so one program, compiled while the laws are fitted, serves the chosen one.
-    most_free = len(Coordinates(start, stage1_flags(effects, fit_q, fit_support=True, fit_clearances=fit_clearances)).names)
+    most_free = len(Coordinates(start, flags(support=True)).names)
     initial_theta = start_coordinates.theta(start_coordinates.initial())
     ahead.compile(
         INFORMATION_PROGRAM, stage1_information, initial_theta, start_coordinates.directions(most_free),
@@ -385,7 +390,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         if not starts:
             return None
         with_support = Coordinates(
-            start._replace(log_support=jnp.asarray(starts[0])), stage1_flags(effects, fit_q, fit_support=True, fit_clearances=fit_clearances)
+            start._replace(log_support=jnp.asarray(starts[0])), flags(support=True)
         )
         supported = problem(law, (records,), with_support, screened=True)
         x0 = min((with_support_at(with_support, theta_rigid, s) for s in starts), key=supported.loss)
@@ -522,7 +527,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             # The constants first, the support held at its screened knee: moved together, a constant
             # still far from its optimum (damping, on few bags) can carry the knee above every impact,
             # where the loss no longer depends on it and it stays.
-            held = Coordinates(c.coordinates.theta(c.x), stage1_flags(effects, fit_q, fit_support=False, fit_clearances=fit_clearances))
+            held = Coordinates(c.coordinates.theta(c.x), flags(support=False))
             x_held, held_convergence = minimise(
                 problem(c.law, chunks, held).objective, held.initial(), settings.calibration_steps, settings.tolerance,
                 f"calibrate {c.name}, refined with the support held", stream, describe, bounds=held.bounds(scales),
