@@ -11,6 +11,8 @@ import numpy as np
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
+    CLEARANCE_NAMES,
+    CLEARANCE_UNIT,
     Q_NAMES,
     Coordinates,
     Stage1,
@@ -134,16 +136,26 @@ class _Problem:
         batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=data.gates(model.effects))
         self.batch = hold_out(batch, self.block, self.every)
         self.start = stage1_start(self.guess, self.effects, self.scales)
+        # the clearances move with f0, as in training: held at the file's, a hidden load's static part stays in them
+        tolerance = config.training.clearance_tolerance
+        self.fit_clearances = tolerance > 0.0
+        self.clearance_width = tolerance / CLEARANCE_UNIT if self.fit_clearances else 1.0
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
-        # the most coordinates a fit frees: f0, the Q factors, the model's effects and the largest candidate
+        # the most coordinates a fit frees: f0, the Q factors, the clearances, the model's effects and the largest
+        # candidate
         own = sum(len(p) for p in model.effects.params)
-        self.tangents = len(PARAMETER_NAMES) + len(Q_NAMES) + own + max([len(c.parameters) for c in candidates] or [0])
+        self.tangents = (len(PARAMETER_NAMES) + len(Q_NAMES) + len(CLEARANCE_NAMES) + own
+                         + max([len(c.parameters) for c in candidates] or [0]))
+
+    def flags(self, fitted_effects: Sequence[str]) -> Stage1:
+        """A full fit's free coordinates: f0, the Q factors, the clearances and the named effects."""
+        return stage1_flags(self.effects, True, fitted_effects=fitted_effects, fit_clearances=self.fit_clearances)
 
     def compile_ahead(self) -> None:
         """Queue the measures' and the standard errors' programs in `self.ahead`, with arguments of the
         types `evaluate` and `information` pass: they compile beside the baseline's fit, which compiles
         the loss's."""
-        baseline = stage1_flags(self.effects, True, fitted_effects=self.own_effects)
+        baseline = self.flags(self.own_effects)
         coordinates = Coordinates(self.start, baseline)
         theta = coordinates.theta(coordinates.initial())
         batch, h = self.gated(None), self.config.sample_period
@@ -177,6 +189,7 @@ class _Problem:
             lambda theta: stage1_value_and_grad(
                 theta, self.guess, self.base, self.noise, self.scales, placed,
                 prior_width=settings.prior_width, h=self.config.sample_period, kind="nll", mesh=self.mesh,
+                clearance_width=self.clearance_width,
             )
         )
 
@@ -252,7 +265,7 @@ def _fit_candidates(
                 f"fit {name} alone{label}", stream, bounds=alone.bounds(problem.scales),
             )
             start = alone.theta(x)
-        coordinates = Coordinates(start, stage1_flags(problem.effects, True, fitted_effects=fitted_effects))
+        coordinates = Coordinates(start, problem.flags(fitted_effects))
         objective = problem.objective(coordinates, batch)
         x, convergence = minimise(
             objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {name}{label}", stream,
@@ -353,7 +366,8 @@ def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch
     """Standard errors (physical units) of one effect's fitted parameters from the Fisher information
     of the fitted samples of `batch`."""
     information = problem.information(coordinates, x, batch)
-    sd, _ = information_standard_errors(information, coordinates.prior_sd(problem.config.training.prior_width))
+    prior_sd = coordinates.prior_sd(problem.config.training.prior_width, problem.clearance_width)
+    sd, _ = information_standard_errors(information, prior_sd)
     scales = problem.scales.params[problem.effects.names.index(name)]
     return {
         n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]]
