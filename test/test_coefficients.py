@@ -254,3 +254,27 @@ def test_sha256_of_directory_changes_with_content(tmp_path):
     first = sha256_of(bag)
     (bag / "a.mcap").write_bytes(b"124")
     assert sha256_of(bag) != first and len(first) == 64
+
+
+def test_file_carries_the_calibrated_clearances_and_the_model_sees_them(tmp_path):
+    """contact.radial_clearance / axial_clearance (stage 1 with training.clearance_tolerance > 0) are the clearances
+    the model's contacts see; the rig's fingerprint stays the YAML's (the file still loads with it); a file without
+    them keeps the YAML's; one of the two alone, or a bad value, is refused naming both."""
+    clearances = (2.49e-4, 2.6e-4)
+    calibrated = CONFIG.calibrated(CONFIG.nominal, CONFIG.law, CONFIG.kernel, CONFIG.noise, clearances=clearances)
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), calibrated, TrainingRecord())
+    loaded = load_coefficients(path, CONFIG)
+    rig = loaded.model(CONFIG).rig
+    assert (rig.radial_clearance, rig.axial_clearance) == (2.49e-4, 2.6e-4)
+    assert loaded.config(CONFIG).rig == CONFIG.rig  # the YAML's, which the file is tied to
+    document = yaml.safe_load(path.read_text())
+    for name in ("radial_clearance", "axial_clearance"):
+        del document["contact"][name]
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert load_coefficients(path, CONFIG).model(CONFIG).rig == CONFIG.rig
+    for bad in ({"axial_clearance": 2.6e-4}, {"radial_clearance": -1.0, "axial_clearance": 2.6e-4},
+                {"radial_clearance": "x", "axial_clearance": 2.6e-4}):
+        broken = {**document, "contact": {**document["contact"], **bad}}
+        path.write_text(yaml.safe_dump({**broken, "content_sha256": content_sha256(broken)}))
+        with pytest.raises(CoefficientFileError, match=r"contact\.radial_clearance and contact\.axial_clearance"):
+            load_coefficients(path, CONFIG)

@@ -50,6 +50,7 @@ def test_named_node_section_and_overrides(tmp_path):
         (("regularisation: [1.0, ", "regularisation: [-1.0, "), "'training.regularisation' must not be negative"),
         ((LAMBDAS, "regularisation: []"), "'training.regularisation' must be a"),
         ((LAMBDAS, "regularisation: much"), "'training.regularisation' must be"),
+        (("clearance_tolerance: 0.0 ", "clearance_tolerance: -1.0e-6 "), "'training.clearance_tolerance' must be >= 0"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):

@@ -72,7 +72,7 @@ class TrainingSettings:
     friction_models: tuple[str, ...] = ()
     prior_width: float = 1.6  # sd of ln f0 around the guess (ln 5: a guess 5x off is one sd)
     # m, sd of r0 and z0 around rig.*_clearance (drawing tolerances, thermal growth); 0: given exactly, not fitted
-    clearance_tolerance: float = 25.0e-6
+    clearance_tolerance: float = 0.0
     reference_deformation: float = 20.0e-6  # m, where a guess is carried over between contact laws
     placement: str = "data"  # kernel centres: data (from the calibrated estimates) | fixed (kernel.* grid)
     calibration_steps: int = 200  # cap on stage-1 L-BFGS iterations (it stops at convergence first)
