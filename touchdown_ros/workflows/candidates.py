@@ -275,7 +275,7 @@ def _fit_candidates(
         measures = problem.evaluate(theta, batch)
         if phases is None:
             problem.rescale(np.asarray(measures.states)[np.asarray(batch.valid)])
-            phases = contact_phases(np.asarray(measures.states), config.rig)
+            phases = contact_phases(np.asarray(measures.states), config.contact_rig)
         fitted_rows = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
         values, sd = {}, {}
         if effect is not None:

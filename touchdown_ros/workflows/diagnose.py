@@ -223,14 +223,14 @@ def diagnose(
         b.path.name: windowed_rms(b.k_step - b.result.estimate.measured, windows).tolist() for b in results
     }
     metrics["regions"] = regions(
-        config.rig,
+        config.contact_rig,
         _stack(results, lambda b: np.asarray(b.result.estimate.smoothed.state)),
         np.linalg.norm(_stack(results, lambda b: b.k_step - b.result.estimate.measured), axis=1),
         settings.deformation_bins,
         settings.velocity_bins,
     )
     tests = residual_tests(
-        config.rig,
+        config.contact_rig,
         [b.result.estimate.innovation for b in results],
         [b.result.estimate.smoothed.state for b in results],
         settings.max_lag,
@@ -258,7 +258,7 @@ def diagnose(
         )
         verdict = fitted_verdict(verdict, selection)
     missing_signature = signature(
-        config.rig,
+        config.contact_rig,
         config.sample_period,
         [b.missing.force for b in results],
         [b.missing.state for b in results],
