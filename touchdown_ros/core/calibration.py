@@ -157,6 +157,12 @@ def stage1_start(log_f0: Array, effects: Effects, scales: Effects, log_support: 
     return Stage1(jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support, jnp.zeros(len(CLEARANCE_NAMES)))
 
 
+def clearance_width(tolerance: float) -> float:
+    """Prior sd of the clearance coordinates for `training.clearance_tolerance` (m); 1 where they are not
+    fitted (0: held at the YAML's, where the prior adds nothing)."""
+    return tolerance / CLEARANCE_UNIT if tolerance > 0.0 else 1.0
+
+
 def with_clearances(rig: Rig, clearance: Array | None) -> Rig:
     """`rig` with r0 and z0 moved by the clearance coordinates (`Stage1.clearance`; None: as it is)."""
     if clearance is None:

@@ -19,6 +19,7 @@ from touchdown_ros.core.calibration import (
     SUPPORT_NAMES,
     Coordinates,
     Stage1,
+    clearance_width,
     convert_guess,
     data_scales,
     effect_scales,
@@ -99,9 +100,10 @@ class Calibration:
 
     def clearance_changes(self) -> dict[str, float]:
         """m, the calibrated r0 and z0 minus the rig YAML's (empty where they were not fitted)."""
+        if self.config.clearances is None:
+            return {}
         calibrated = self.config.contact_rig
-        return {n: float(getattr(calibrated, n)) - float(getattr(self.config.rig, n))
-                for n in CLEARANCE_NAMES if self.config.clearances is not None}
+        return {n: float(getattr(calibrated, n)) - float(getattr(self.config.rig, n)) for n in CLEARANCE_NAMES}
 
     def summary(self) -> dict[str, Any]:
         """Plain data for the coefficient file, with the notes `train` prints (`notes`)."""
@@ -299,7 +301,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll"
     fit_clearances = settings.clearance_tolerance > 0.0
-    clearance_width = settings.clearance_tolerance / CLEARANCE_UNIT if fit_clearances else 1.0
+    clearance_prior_sd = clearance_width(settings.clearance_tolerance)
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
     # support rigid or as given (held), or yielding (free).
@@ -354,7 +356,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             )
         return text
 
-    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_width)
+    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_prior_sd)
 
     def problem(
         law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates, screened: bool = False
@@ -591,7 +593,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     information = stage1_information_over(
         chunks, theta, coordinates.directions(most_free), law_model(law), noise, scales, h, kind, mesh
     )[:free, :free]
-    covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_width))
+    covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_prior_sd))
     sd, correlation = standard_errors_and_correlation(covariance)
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd) if n not in CLEARANCE_NAMES}
     clearance_sd = {n: float(v) * CLEARANCE_UNIT for n, v in zip(coordinates.names, sd) if n in CLEARANCE_NAMES}

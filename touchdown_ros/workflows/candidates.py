@@ -12,11 +12,11 @@ import numpy as np
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
     CLEARANCE_NAMES,
-    CLEARANCE_UNIT,
     Q_NAMES,
     Coordinates,
     Stage1,
     apply_scales,
+    clearance_width,
     effect_scales,
     force_scaled,
     information_standard_errors,
@@ -137,9 +137,8 @@ class _Problem:
         self.batch = hold_out(batch, self.block, self.every)
         self.start = stage1_start(self.guess, self.effects, self.scales)
         # the clearances move with f0, as in training: held at the file's, a hidden load's static part stays in them
-        tolerance = config.training.clearance_tolerance
-        self.fit_clearances = tolerance > 0.0
-        self.clearance_width = tolerance / CLEARANCE_UNIT if self.fit_clearances else 1.0
+        self.fit_clearances = config.training.clearance_tolerance > 0.0
+        self.clearance_width = clearance_width(config.training.clearance_tolerance)
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
         # the most coordinates a fit frees: f0, the Q factors, the clearances, the model's effects and the largest
         # candidate
