@@ -147,6 +147,60 @@ def test_stage1_information_is_the_fisher_information_of_the_innovations(kind):
     assert not np.any(np.asarray(spread)[p:]) and not np.any(np.asarray(spread)[:, p:])  # padding adds nothing
 
 
+@pytest.mark.parametrize("kind", ["nll", "one_step"])
+def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information(kind):
+    """One forward pass gives J (`stage1_value`), its gradient (reverse-mode AD's) and the information
+    (`stage1_information`) along the free coordinates, the prior's part (guess, Q and a clearance's) included;
+    the records spread over the devices and in two chunks give the same (`stage1_gauss_newton_over`)."""
+    from touchdown_ros.core.calibration import (
+        RIGID_LOG_SUPPORT, Coordinates, Stage1, log_nominal, stage1_flags, stage1_gauss_newton,
+        stage1_gauss_newton_over, stage1_information, stage1_value_and_grad, stage1_value_and_grad_over,
+    )
+    from touchdown_ros.core.training import hold_out, make_batch
+    from touchdown_ros.workflows.training_data import place, record_mesh
+
+    config = load_config()
+    rng = np.random.default_rng(6)
+    records = [np.cumsum(2e-6 * rng.standard_normal((n, 3)), axis=0) - [0, 0, 1e-5] for n in (150, 130)]
+    batch = hold_out(make_batch(records, np.asarray(config.noise.initial)), 20, 3)
+    guess = jnp.asarray(log_nominal(config.nominal))
+    start = Stage1(guess + 0.2, jnp.array([0.3, -0.2]), config.effects, jnp.asarray(RIGID_LOG_SUPPORT),
+                   jnp.array([0.4, -0.7]))
+    coordinates = Coordinates(start, stage1_flags(config.effects, True, fit_support=False, fit_clearances=True))
+    p = len(coordinates.names)
+    assert "axial_clearance" in coordinates.names
+    model, noise, h = config.model(), config.noise, config.sample_period
+    static = dict(prior_width=1.5, h=h, kind=kind, clearance_width=2.5)
+    arguments = (guess, model, noise, config.effects)
+    terms = stage1_gauss_newton(start, coordinates.directions(p + 2), *arguments, batch, **static)
+    value, grad = stage1_value_and_grad(start, *arguments, batch, **static)
+    np.testing.assert_allclose(float(terms.value), float(value), rtol=1e-12)
+    gradient = coordinates.flat(grad)
+    assert np.all(np.abs(gradient) > 0)
+    np.testing.assert_allclose(np.asarray(terms.gradient)[:p], gradient, rtol=1e-8,
+                               atol=1e-10 * np.max(np.abs(gradient)))
+    information = np.asarray(stage1_information(start, coordinates.directions(), model, noise, config.effects, h,
+                                                batch, kind))
+    largest = np.max(np.abs(information))
+    np.testing.assert_allclose(np.asarray(terms.information)[:p, :p], information, rtol=1e-10, atol=1e-12 * largest)
+    assert not np.any(np.asarray(terms.gradient)[p:]) and not np.any(np.asarray(terms.information)[p:])
+
+    mesh = record_mesh()
+    spread = stage1_gauss_newton(start, coordinates.directions(p + 2), *arguments, place(batch, mesh), mesh=mesh,
+                                 **static)
+    for got, want in zip(spread, terms):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10, atol=1e-12 * np.max(np.abs(want)))
+    # Two chunks (one program: the same shape): J and its gradient as one batch's, the information summed.
+    other = jax.tree.map(lambda a: a[::-1], batch)  # the records in the other order
+    over = stage1_gauss_newton_over([batch, other], start, coordinates.directions(p + 2), *arguments, **static)
+    value_over, grad_over = stage1_value_and_grad_over([batch, other], start, *arguments, **static)
+    np.testing.assert_allclose(over.value, value_over, rtol=1e-12)
+    np.testing.assert_allclose(over.gradient[:p], coordinates.flat(grad_over), rtol=1e-8,
+                               atol=1e-10 * np.max(np.abs(gradient)))
+    np.testing.assert_allclose(over.information, 2.0 * np.asarray(terms.information), rtol=1e-10,
+                               atol=1e-12 * largest)
+
+
 def test_stage1_over_chunks_runs_one_chunk_at_a_time(monkeypatch):
     """Each chunk's program has finished before the next is dispatched and the sums are the host's:
     with the chunks' programs and the device sums of their results in flight together, the all-reduce

@@ -232,15 +232,16 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
     assert not (out / "broken_estimate").exists()
 
 
-def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothing_once_ahead(drop_bags, tmp_path):
-    """Stage 1's loss alone (for the support's start grid and the restarts), stage 2's program, stage 1's
-    standard errors', the smoothing noise's and the model's force error's are compiled in the background
-    thread from the rig YAML's shapes while stage 1 compiles and runs, before it has calibrated the values
-    they are later called with (other constants, centres placed on the data): the calls find them and
-    compile nothing again. With the paper's friction (a spinning ring's programs: the test below)."""
+def test_train_compiles_stage1s_loss_stage2_the_refinement_and_the_smoothing_once_ahead(drop_bags, tmp_path):
+    """Stage 1's loss alone (for the support's start grid, the restarts and the refinement's trial points),
+    stage 2's program, stage 1's refinement's and standard errors' (`stage1_gauss_newton`), the smoothing
+    noise's and the model's force error's are compiled in the background thread from the rig YAML's shapes
+    while stage 1 compiles and runs, before it has calibrated the values they are later called with (other
+    constants, centres placed on the data): the calls find them and compile nothing again. With the paper's
+    friction (a spinning ring's programs: the test below)."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
-    watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_information)",
+    watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_gauss_newton)",
                "jit(leave_one_out_squares)", "jit(missing_force_squares)"}
     # records of 430 samples: a shape no other test compiles these programs for in this process
     code, compiled = compilations(watched, lambda: main([
@@ -255,19 +256,20 @@ def test_train_compiles_stage1s_loss_stage2_the_standard_errors_and_the_smoothin
 
 def test_train_with_a_spinning_ring_compiles_the_refinements_programs_ahead(drop_bags, tmp_path):
     """With the ring's speed a state the laws are screened with the ring turning with the rotor and refined
-    with its state: another loss-and-gradient and another loss alone, compiled in the background while
-    the laws are screened. Only the screening's loss-and-gradient is compiled where it is called."""
+    with its state: the refinement's Gauss-Newton program and another loss alone, compiled in the background
+    while the laws are screened. Only the screening's loss-and-gradient is compiled where it is called."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
+    watched = {"jit(stage1_value)", "jit(stage1_value_and_grad)", "jit(stage1_gauss_newton)"}
     # records of 420 samples: a shape no other test compiles these programs for in this process
-    code, compiled = compilations({"jit(stage1_value)", "jit(stage1_value_and_grad)"}, lambda: main([
+    code, compiled = compilations(watched, lambda: main([
         "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
         "--duration", "0.042", "--steps", "0", "-p", "training.contact_laws:=[linear]",
         "-p", "contact.friction:=spinning_ring", "-p", "training.axial_support:=rigid",
     ]))
     assert code == 0
     ahead = sorted(name for name, thread in compiled if thread.startswith(THREAD_NAME))
-    assert ahead == ["jit(stage1_value)", "jit(stage1_value)", "jit(stage1_value_and_grad)"]
+    assert ahead == ["jit(stage1_gauss_newton)", "jit(stage1_value)", "jit(stage1_value)"]
     assert [name for name, thread in compiled if not thread.startswith(THREAD_NAME)] == ["jit(stage1_value_and_grad)"]
 
 

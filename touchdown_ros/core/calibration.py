@@ -36,7 +36,7 @@ from touchdown_ros.core.diagnostics.breakdown import deformations
 from touchdown_ros.core.diagnostics.regressors import library_regressors
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, inverse_and_det_3x3
-from touchdown_ros.core.training import RECORDS, Batch, innovations, output_error
+from touchdown_ros.core.training import RECORDS, Batch, errors_of_innovations, innovations, output_error
 from touchdown_ros.core.types import PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Kernel, Model, Nominal, Rig
 
 #: Which Q entries each noise factor scales: radial (x, y, xdot, ydot) and axial (z, zdot); theta stays.
@@ -229,10 +229,17 @@ def stage1_objective(
     (1/C for each of C chunks of the records: `stage1_value_and_grad_over`)."""
     model, fitted_noise = stage1_model_and_noise(theta, base, noise, scales)
     data = output_error(model, fitted_noise, h, batch, mesh, kind)
+    prior = stage1_prior(theta, guess_log_f0, prior_width, clearance_width)
+    return data + prior_weight * prior / jnp.sum(batch.valid)
+
+
+def stage1_prior(theta: Stage1, guess_log_f0: Array, prior_width: float, clearance_width: float = 1.0) -> Array:
+    """The prior's part of J before its division by the samples (module docstring): -2 ln of the prior
+    density at theta, without constants."""
     prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
     if theta.clearance is not None:
         prior = prior + jnp.sum((theta.clearance / clearance_width) ** 2)
-    return data + prior_weight * prior / jnp.sum(batch.valid)
+    return prior
 
 
 @functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh", "clearance_width"))
@@ -493,11 +500,17 @@ def fisher_information(
     def moments(t: Stage1) -> tuple[Array, Array]:
         return innovations(*stage1_model_and_noise(t, base, noise, scales), h, batch)
 
-    (nu, S), (d_nu, d_S) = jax.vmap(lambda d: jax.jvp(moments, (theta,), (d,)), out_axes=(None, 0))(directions)
+    (_, S), (d_nu, d_S) = jax.vmap(lambda d: jax.jvp(moments, (theta,), (d,)), out_axes=(None, 0))(directions)
+    return _information(S, d_nu, d_S, noise.measurement, batch, kind)
+
+
+def _information(S: Array, d_nu: Array, d_S: Array, measurement: Array, batch: Batch, kind: str) -> Array:
+    """`fisher_information` from the innovations' covariances S (B, L, 3, 3) and the p tangents of the
+    innovations d_nu (p, B, L, 3) and of S (p, B, L, 3, 3)."""
     counted = (batch.valid & ~batch.held_out)[None, ..., None]
     d_nu = jnp.where(counted, d_nu, 0.0)
     if kind == "one_step":
-        return jnp.einsum("pblk,qblk->pq", d_nu / noise.measurement, d_nu)
+        return jnp.einsum("pblk,qblk->pq", d_nu / measurement, d_nu)
     S = jnp.where(counted[0, ..., None], S, jnp.eye(3))
     S_inverse = jnp.linalg.inv(S)
     whitened = jnp.einsum("blij,pblj->pbli", S_inverse, d_nu)
@@ -505,6 +518,92 @@ def fisher_information(
     d_S = jnp.where(counted[..., None], d_S, 0.0)
     spread = jnp.einsum("blij,pbljk->pblik", S_inverse, d_S)
     return mean_part + 0.5 * jnp.einsum("pblik,qblki->pq", spread, spread)
+
+
+class GaussNewtonTerms(NamedTuple):
+    """J (the module docstring's, per sample), its derivatives along p directions of the stage-1 coordinates
+    and the data's Fisher information along them (`fisher_information`): J's Gauss-Newton Hessian is
+    2 (information + the prior's precision) / N."""
+
+    value: Array  # ()
+    gradient: Array  # (p,)
+    information: Array  # (p, p)
+
+
+def _data_terms(
+    theta: Stage1, directions: Stage1, base: Model, noise: FilterNoise, scales: Effects, h: float, batch: Batch,
+    kind: str,
+) -> tuple[Array, Array, Array]:
+    """(sum of the output error over the fitted samples, its derivatives along `directions`, the Fisher
+    information along them) from one forward pass with p tangents."""
+    fitted = batch.valid & ~batch.held_out
+
+    def moments(t: Stage1) -> tuple[Array, Array, Array]:
+        model, fitted_noise = stage1_model_and_noise(t, base, noise, scales)
+        nu, S = innovations(model, fitted_noise, h, batch)
+        errors = errors_of_innovations(nu, S, fitted_noise.measurement, batch.valid, kind)
+        return jnp.sum(jnp.where(fitted, errors, 0.0)), nu, S
+
+    (total, _, S), (d_total, d_nu, d_S) = jax.vmap(
+        lambda d: jax.jvp(moments, (theta,), (d,)), out_axes=(None, 0)
+    )(directions)
+    return total, d_total, _information(S, d_nu, d_S, noise.measurement, batch, kind)
+
+
+@functools.partial(jax.jit, static_argnames=("prior_width", "h", "kind", "mesh", "clearance_width"))
+def stage1_gauss_newton(
+    theta: Stage1,
+    directions: Stage1,
+    guess_log_f0: Array,
+    base: Model,
+    noise: FilterNoise,
+    scales: Effects,
+    batch: Batch,
+    *,
+    prior_width: float,
+    h: float,
+    kind: str,
+    mesh: Mesh | None = None,
+    prior_weight: float | Array = 1.0,
+    clearance_width: float = 1.0,
+) -> GaussNewtonTerms:
+    """`GaussNewtonTerms` of `stage1_value` (the same arguments, and the p `directions` as in
+    `fisher_information`); with a mesh, each device takes its share of the records and the sums are added.
+    Forward-mode AD: with the filter's long scan about twice the cost of `stage1_value_and_grad` for a
+    dozen directions, and the information comes with it."""
+    if mesh is None:
+        total, d_total, information = _data_terms(theta, directions, base, noise, scales, h, batch, kind)
+    else:
+        def share(*args) -> tuple[Array, Array, Array]:
+            return jax.lax.psum(_data_terms(*args[:5], h, args[5], kind), RECORDS)
+
+        replicated = jax.tree.map(jnp.asarray, (theta, directions, base, noise, scales))
+        total, d_total, information = jax.shard_map(
+            share, mesh=mesh, in_specs=(P(),) * 5 + (P(RECORDS),), out_specs=P(), check_vma=False
+        )(*replicated, batch)
+    prior, d_prior = jax.vmap(
+        lambda d: jax.jvp(lambda t: stage1_prior(t, guess_log_f0, prior_width, clearance_width), (theta,), (d,)),
+        out_axes=(None, 0),
+    )(directions)
+    fitted = jnp.sum(batch.valid & ~batch.held_out)
+    weight = prior_weight / jnp.sum(batch.valid)
+    return GaussNewtonTerms(total / fitted + weight * prior, d_total / fitted + weight * d_prior, information)
+
+
+def stage1_gauss_newton_over(
+    chunks: Sequence[Batch], theta: Stage1, directions: Stage1, guess_log_f0: Array, base: Model, noise: FilterNoise,
+    scales: Effects, **static,
+) -> GaussNewtonTerms:
+    """`stage1_gauss_newton` of the records of all `chunks` (as `stage1_value_and_grad_over`: J and its
+    derivatives weighted by the chunks' valid samples, the prior counted once; the information summed)."""
+    value, gradient, information = 0.0, 0.0, 0.0
+    for share, terms in _over_chunks(chunks, lambda chunk, weight: stage1_gauss_newton(
+        theta, directions, guess_log_f0, base, noise, scales, chunk, prior_weight=weight, **static
+    )):
+        value += share * float(terms.value)
+        gradient = gradient + share * np.asarray(terms.gradient, dtype=float)
+        information = information + np.asarray(terms.information, dtype=float)
+    return GaussNewtonTerms(value, gradient, information)
 
 
 def posterior_covariance(information: np.ndarray, prior_sd: np.ndarray | None = None) -> np.ndarray:

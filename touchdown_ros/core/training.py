@@ -118,18 +118,24 @@ def prediction_errors(model: Model, noise: FilterNoise, h: float, batch: Batch) 
 def sample_errors(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str = "one_step") -> Array:
     """(B, L) output error of each sample (module docstring), 0 where the sample is not valid."""
     errors, S = innovations(model, noise, h, batch)
+    return errors_of_innovations(errors, S, noise.measurement, batch.valid, kind)
+
+
+def errors_of_innovations(errors: Array, S: Array, measurement: Array, valid: Array, kind: str) -> Array:
+    """`sample_errors` from the innovations (B, L, 3), their covariances (B, L, 3, 3) and the sensor
+    noise variances R (3,), m^2; 0 where `valid` is False."""
     if kind == "one_step":
-        value = jnp.sum(errors**2 / noise.measurement, axis=-1)
+        value = jnp.sum(errors**2 / measurement, axis=-1)
     elif kind == "nll":
-        safe = jnp.where(batch.valid[..., None], errors, 0.0)
-        scaled = S / jnp.sqrt(noise.measurement[:, None] * noise.measurement[None, :])  # S R^-1 up to similarity
+        safe = jnp.where(valid[..., None], errors, 0.0)
+        scaled = S / jnp.sqrt(measurement[:, None] * measurement[None, :])  # S R^-1 up to similarity
         inverse, det = inverse_and_det_3x3(scaled)
-        whitened = safe / jnp.sqrt(noise.measurement)
+        whitened = safe / jnp.sqrt(measurement)
         mahalanobis = jnp.einsum("...i,...ij,...j->...", whitened, inverse, whitened)
-        value = mahalanobis + jnp.log(jnp.where(batch.valid, det, 1.0))
+        value = mahalanobis + jnp.log(jnp.where(valid, det, 1.0))
     else:
         raise ValueError(f"unknown loss {kind!r}: use one of {', '.join(LOSSES)}")
-    return jnp.where(batch.valid, value, 0.0)
+    return jnp.where(valid, value, 0.0)
 
 
 def _fitted_and_held_out_sums(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str) -> Array:

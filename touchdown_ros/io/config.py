@@ -51,6 +51,9 @@ LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
 #: training.search: standard (the support chosen by BIC) or thorough (by AIC, with damping restarts).
 SEARCH_CHOICES = ("standard", "thorough")
+#: training.refinement: how stage 1 refines the chosen law on all bags: gauss_newton (Levenberg-Marquardt on the
+#: Fisher information) or lbfgs (L-BFGS-B on the gradient, the optimiser until 2026-12-01).
+REFINEMENT_CHOICES = ("gauss_newton", "lbfgs")
 #: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding,
 #: given (contact.support_preload and support_span as the YAML says, held: a mount's data sheet).
 SUPPORT_CHOICES = ("auto", "rigid", "yielding", "given")
@@ -84,6 +87,7 @@ class TrainingSettings:
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
+    refinement: str = "gauss_newton"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
@@ -480,6 +484,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         patience=read.integer("training.patience", d.patience, minimum=1),
         axial_support=axial_support,
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
+        refinement=read.choice("training.refinement", d.refinement, REFINEMENT_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
     )
 

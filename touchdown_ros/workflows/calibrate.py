@@ -28,8 +28,8 @@ from touchdown_ros.core.calibration import (
     posterior_covariance,
     sensor_noise,
     stage1_flags,
-    stage1_information,
-    stage1_information_over,
+    stage1_gauss_newton,
+    stage1_gauss_newton_over,
     stage1_model_and_noise,
     stage1_start,
     stage1_value,
@@ -52,6 +52,7 @@ from touchdown_ros.workflows.optimise import (
     Convergence,
     DivergedError,
     TrainingError,
+    gauss_newton,
     minimise,
     require_convergence,
 )
@@ -64,14 +65,14 @@ from touchdown_ros.workflows.training_data import (
     training_chunks,
 )
 
-#: `Ahead` names of the standard errors' program (`stage1_information`) and of stage 1's loss alone
-#: (`stage1_value`, for the support's start grid and the restarts, as the laws are screened).
-INFORMATION_PROGRAM = "stage 1's standard errors"
+#: `Ahead` names of the refinement's and the standard errors' program (`stage1_gauss_newton`) and of stage 1's
+#: loss alone (`stage1_value`, for the support's start grid and the restarts, as the laws are screened).
+GAUSS_NEWTON_PROGRAM = "stage 1's refinement and standard errors"
 LOSS_PROGRAM = "stage 1's loss"
-#: With a spinning ring, the refinement's loss-and-gradient and loss alone: the ring's speed a state, another
-#: program than the screening's (the ring turning with the rotor).
-RING_REFINEMENT_PROGRAM = "stage 1's refinement with the ring's speed"
+#: With a spinning ring, the refinement's loss alone (its trial points and restarts) and, refined by L-BFGS, its
+#: loss-and-gradient: the ring's speed a state, other programs than the screening's (the ring turning with the rotor).
 RING_RESTART_PROGRAM = "stage 1's loss with the ring's speed"
+RING_REFINEMENT_PROGRAM = "stage 1's refinement with the ring's speed"
 #: Tolerance to which stage 1 fits each candidate contact law before the finalists are refined.
 SCREEN_TOLERANCE = 1.0e-4
 #: Criterion (AIC or BIC) behind the best screened candidate within which a candidate is refined too before one is
@@ -318,13 +319,17 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     def law_model(law: ContactLaw) -> Model:
         return config.model()._replace(law=law)
 
-    # The standard errors' tangents are padded to the most coordinates a candidate frees (with a
-    # yielding support), so one program, compiled while the laws are fitted, serves the chosen one.
+    # The refinement's tangents are padded to the most coordinates a candidate frees (with a yielding
+    # support), so one program, compiled while the laws are screened, serves every finalist and the
+    # chosen one's standard errors.
     most_free = len(Coordinates(start, flags(support=True)).names)
     initial_theta = start_coordinates.theta(start_coordinates.initial())
-    ahead.compile(
-        INFORMATION_PROGRAM, stage1_information, initial_theta, start_coordinates.directions(most_free),
-        law_model(settings.contact_laws[0]), noise, scales, h, chunks[0], kind, mesh,
+    guess_log = jnp.asarray(log_nominal(config.nominal))
+    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_prior_sd)
+    chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
+    ahead.compile_first(  # needed as the laws' screening ends, before stage 2's
+        GAUSS_NEWTON_PROGRAM, stage1_gauss_newton, initial_theta, start_coordinates.directions(most_free), guess_log,
+        law_model(settings.contact_laws[0]), noise, scales, chunks[0], **chunk_weight,
     )
 
     # With the ring's speed as a state the loss far from the rig's constants is rough (the ring sticks
@@ -356,7 +361,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             )
         return text
 
-    static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_prior_sd)
+    newton_terms: dict[tuple, Any] = {}  # `stage1_gauss_newton_over` on all records by (law, coordinates, x)
 
     def problem(
         law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates, screened: bool = False
@@ -367,11 +372,38 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         records = tuple(map(screened_records, records)) if screened else records
         base = law_model(screening(law) if screened else law)
         arguments = (guess_log, base, screen_noise if screened else noise, scales)
+        directions = coordinates.directions(most_free)
+        precision = 1.0 / coordinates.prior_sd(settings.prior_width, clearance_prior_sd) ** 2
+        samples = sum(int(np.sum(np.asarray(r.valid))) for r in records)
+
+        def terms(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+            """J, its gradient and its Gauss-Newton Hessian at x (the information kept for the standard errors)."""
+            key = (law.label, coordinates.start.tobytes(), x.tobytes())
+            got = newton_terms[key] = stage1_gauss_newton_over(
+                records, coordinates.theta(x), directions, *arguments, **static
+            )
+            free = len(x)
+            hessian = 2.0 * (got.information[:free, :free] + np.diag(precision)) / samples
+            return got.value, got.gradient[:free], hessian
+
         return Problem(
             coordinates.objective(lambda theta: stage1_value_and_grad_over(records, theta, *arguments, **static)),
             coordinates.loss(lambda theta: stage1_value_over(records, theta, *arguments, **static)),
             coordinates.initial(log_f0=guess_log),
+            terms,
         )
+
+    def refine(
+        law: ContactLaw, coordinates: Coordinates, x: np.ndarray, label: str, tolerance: float = settings.tolerance
+    ) -> tuple[np.ndarray, Convergence]:
+        """`law` with `coordinates` fitted on all records from x (`training.refinement`: `gauss_newton`, or
+        `minimise`'s L-BFGS)."""
+        refined, bounds = problem(law, chunks, coordinates), coordinates.bounds(scales)
+        if settings.refinement == "lbfgs":
+            return minimise(refined.objective, x, settings.calibration_steps, tolerance, label, stream, describe,
+                            bounds=bounds)
+        return gauss_newton(refined.terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream,
+                            describe, bounds=bounds)
 
     def support_grid(law: ContactLaw, theta: Stage1, records: Batch) -> list[np.ndarray]:
         """ln preload and ln span (N) where a yielding support of `law` may start under theta's constants
@@ -409,19 +441,18 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     n_screen = int(np.sum(np.asarray(screen_batch.valid)))
     screen_tolerance = max(settings.tolerance, SCREEN_TOLERANCE)
     screened: list[Candidate] = []
-    guess_log = jnp.asarray(log_nominal(config.nominal))
-    if spinning:  # needed once the laws are screened (the refinement), before stage 2's and the standard errors'
+    if spinning:  # needed once the laws are screened (the refinement's trial points), before stage 2's
         refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
-        chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
         ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
-        ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
+        if settings.refinement == "lbfgs":
+            ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
     ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
         LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
         screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
     )
     ahead.start()  # the first law's fit compiles stage 1 now, beside them
     for law in settings.contact_laws:
-        objective, loss, x0 = problem(law, (screen_batch,), screened=True)
+        objective, loss, x0, _ = problem(law, (screen_batch,), screened=True)
         x, convergence = minimise(
             objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe,
             bounds=coordinates.bounds(scales),
@@ -500,7 +531,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         theta_c = c.coordinates.theta(c.x)
         r = next((r for r in refined if not r.yields and r.law == c.law), None)
         below = r is not None and r.convergence.final_loss < c.convergence.final_loss
-        objective, loss, _ = problem(c.law, chunks, c.coordinates)
+        loss = problem(c.law, chunks, c.coordinates).loss
         starts = []
         for theta in (theta_c, r.coordinates.theta(r.x)) if below else (theta_c,):
             own = [theta_c.log_support] if theta is not theta_c else []
@@ -510,10 +541,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         if start_loss >= c.convergence.final_loss:
             return c
         constants = f"its own or {r.name}'s constants" if below else "its own constants"
-        x, convergence = minimise(
-            objective, start, settings.calibration_steps, settings.tolerance,
+        x, convergence = refine(
+            c.law, c.coordinates, start,
             f"calibrate {c.name}, refined from the support grid under {constants} (its loss {start_loss:.7g} "
-            f"there, below {c.convergence.final_loss:.7g})", stream, describe, bounds=c.coordinates.bounds(scales),
+            f"there, below {c.convergence.final_loss:.7g})",
         )
         if not convergence.converged or convergence.final_loss >= c.convergence.final_loss:
             return c
@@ -521,37 +552,31 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         return c._replace(score=score, x=x, convergence=convergence)
 
     if spinning:
+        ahead.wait(RING_RESTART_PROGRAM)
         ahead.wait(RING_REFINEMENT_PROGRAM)
+    ahead.wait(GAUSS_NEWTON_PROGRAM)
     refined = []
     for c in finalists:
         x = c.x
         if c.yields and thorough:
             # The constants first, the support held at its screened knee: moved together, a constant
             # still far from its optimum (damping, on few bags) can carry the knee above every impact,
-            # where the loss no longer depends on it and it stays.
+            # where the loss no longer depends on it and it stays. (By Gauss-Newton to the screening's tolerance:
+            # the fit with the support free goes on from there, which takes fewer steps in all.)
             held = Coordinates(c.coordinates.theta(c.x), flags(support=False))
-            x_held, held_convergence = minimise(
-                problem(c.law, chunks, held).objective, held.initial(), settings.calibration_steps, settings.tolerance,
-                f"calibrate {c.name}, refined with the support held", stream, describe, bounds=held.bounds(scales),
+            x_held, held_convergence = refine(
+                c.law, held, held.initial(), f"calibrate {c.name}, refined with the support held",
+                screen_tolerance if settings.refinement == "gauss_newton" else settings.tolerance,
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
-        objective, loss, _ = problem(c.law, chunks, c.coordinates)
+        loss = problem(c.law, chunks, c.coordinates).loss
         x_start = x
-        x, convergence = minimise(
-            objective, x, settings.calibration_steps, settings.tolerance, f"calibrate {c.name}, refined", stream,
-            describe, bounds=c.coordinates.bounds(scales),
-        )
+        x, convergence = refine(c.law, c.coordinates, x, f"calibrate {c.name}, refined")
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
-        if spinning:
-            ahead.wait(RING_RESTART_PROGRAM)
         restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
         if restart is not None:
-            x, again = minimise(
-                objective, restart, settings.calibration_steps, settings.tolerance,
-                f"calibrate {c.name}, refined from the friction restart", stream, describe,
-                bounds=c.coordinates.bounds(scales),
-            )
+            x, again = refine(c.law, c.coordinates, restart, f"calibrate {c.name}, refined from the friction restart")
             convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
             stalled = False
         if c.yields and thorough and stalled and held_convergence.converged:
@@ -588,11 +613,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     law, coordinates, x, convergence = best.law, best.coordinates, best.x, best.convergence
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
-    ahead.wait(INFORMATION_PROGRAM)
     free = len(coordinates.names)
-    information = stage1_information_over(
-        chunks, theta, coordinates.directions(most_free), law_model(law), noise, scales, h, kind, mesh
-    )[:free, :free]
+    terms = newton_terms.get((law.label, coordinates.start.tobytes(), x.tobytes())) or stage1_gauss_newton_over(
+        chunks, theta, coordinates.directions(most_free), guess_log, law_model(law), noise, scales, **static
+    )
+    information = terms.information[:free, :free]
     covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_prior_sd))
     sd, correlation = standard_errors_and_correlation(covariance)
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd) if n not in CLEARANCE_NAMES}
@@ -804,6 +829,7 @@ class Problem(NamedTuple):
     objective: Callable[[np.ndarray], tuple[float, np.ndarray]]  # the loss and its gradient (for `minimise`)
     loss: Callable[[np.ndarray], float]  # the loss alone (start grids, restarts)
     start: np.ndarray  # the free coordinates at the YAML's guess
+    terms: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]]  # loss, gradient, Gauss-Newton Hessian
 
 
 class Candidate(NamedTuple):
