@@ -250,27 +250,34 @@ def test_train_compiles_stage1s_loss_stage2_the_refinement_and_the_smoothing_onc
         "-p", "contact.friction:=paper",
     ]))
     assert code == 0
-    assert sorted(name for name, _ in compiled) == sorted(watched)
+    assert sorted(name for name, _ in compiled) == sorted(watched), compiled
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 
 
-def test_train_with_a_spinning_ring_compiles_the_refinements_programs_ahead(drop_bags, tmp_path):
+@pytest.mark.parametrize("refinement, duration", [("lbfgs", "0.042"), ("gauss_newton", "0.041")])
+def test_train_with_a_spinning_ring_compiles_the_refinements_programs_ahead(drop_bags, tmp_path, refinement, duration):
     """With the ring's speed a state the laws are screened with the ring turning with the rotor and refined
-    with its state: the refinement's Gauss-Newton program and another loss alone, compiled in the background
-    while the laws are screened. Only the screening's loss-and-gradient is compiled where it is called."""
+    with its state: another loss alone (the restarts, Gauss-Newton's trial points), the standard errors'
+    (Gauss-Newton's, `stage1_gauss_newton`) and, refined by L-BFGS, another loss-and-gradient, compiled in the
+    background while the laws are screened. Only the screening's loss-and-gradient is compiled where it is
+    called. Refined either way, stage 1 converges and the file is written."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
     watched = {"jit(stage1_value)", "jit(stage1_value_and_grad)", "jit(stage1_gauss_newton)"}
-    # records of 420 samples: a shape no other test compiles these programs for in this process
+    out = tmp_path / "c.yaml"
+    # records of 420 / 410 samples: shapes no other test compiles these programs for in this process
     code, compiled = compilations(watched, lambda: main([
-        "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
-        "--duration", "0.042", "--steps", "0", "-p", "training.contact_laws:=[linear]",
+        "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(out),
+        "--duration", duration, "--steps", "0", "-p", "training.contact_laws:=[linear]",
         "-p", "contact.friction:=spinning_ring", "-p", "training.axial_support:=rigid",
+        "-p", f"training.refinement:={refinement}",
     ]))
     assert code == 0
     ahead = sorted(name for name, thread in compiled if thread.startswith(THREAD_NAME))
-    assert ahead == ["jit(stage1_gauss_newton)", "jit(stage1_value)", "jit(stage1_value)"]
+    assert ahead == ["jit(stage1_gauss_newton)", "jit(stage1_value)", "jit(stage1_value)"] + (
+        ["jit(stage1_value_and_grad)"] if refinement == "lbfgs" else [])
     assert [name for name, thread in compiled if not thread.startswith(THREAD_NAME)] == ["jit(stage1_value_and_grad)"]
+    assert yaml.safe_load(out.read_text())["training"]["calibration"]["converged"]
 
 
 def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_beside_the_loss(drop_bags):

@@ -87,7 +87,7 @@ class TrainingSettings:
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
-    refinement: str = "gauss_newton"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
+    refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 

@@ -327,7 +327,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     guess_log = jnp.asarray(log_nominal(config.nominal))
     static = dict(prior_width=settings.prior_width, h=h, kind=kind, mesh=mesh, clearance_width=clearance_prior_sd)
     chunk_weight = dict(prior_weight=1.0 / len(chunks), **static)
-    ahead.compile_first(  # needed as the laws' screening ends, before stage 2's
+    by_gauss_newton = settings.refinement == "gauss_newton"
+    (ahead.compile_first if by_gauss_newton else ahead.compile)(  # Gauss-Newton's: needed before stage 2's
         GAUSS_NEWTON_PROGRAM, stage1_gauss_newton, initial_theta, start_coordinates.directions(most_free), guess_log,
         law_model(settings.contact_laws[0]), noise, scales, chunks[0], **chunk_weight,
     )
@@ -399,7 +400,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         """`law` with `coordinates` fitted on all records from x (`training.refinement`: `gauss_newton`, or
         `minimise`'s L-BFGS)."""
         refined, bounds = problem(law, chunks, coordinates), coordinates.bounds(scales)
-        if settings.refinement == "lbfgs":
+        if not by_gauss_newton:
             return minimise(refined.objective, x, settings.calibration_steps, tolerance, label, stream, describe,
                             bounds=bounds)
         return gauss_newton(refined.terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream,
@@ -444,7 +445,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     if spinning:  # needed once the laws are screened (the refinement's trial points), before stage 2's
         refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
         ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
-        if settings.refinement == "lbfgs":
+        if not by_gauss_newton:
             ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
     ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
         LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
@@ -554,7 +555,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     if spinning:
         ahead.wait(RING_RESTART_PROGRAM)
         ahead.wait(RING_REFINEMENT_PROGRAM)
-    ahead.wait(GAUSS_NEWTON_PROGRAM)
+    if by_gauss_newton:
+        ahead.wait(GAUSS_NEWTON_PROGRAM)
     refined = []
     for c in finalists:
         x = c.x
@@ -566,7 +568,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             held = Coordinates(c.coordinates.theta(c.x), flags(support=False))
             x_held, held_convergence = refine(
                 c.law, held, held.initial(), f"calibrate {c.name}, refined with the support held",
-                screen_tolerance if settings.refinement == "gauss_newton" else settings.tolerance,
+                screen_tolerance if by_gauss_newton else settings.tolerance,
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
         loss = problem(c.law, chunks, c.coordinates).loss
@@ -614,6 +616,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
     free = len(coordinates.names)
+    ahead.wait(GAUSS_NEWTON_PROGRAM)
     terms = newton_terms.get((law.label, coordinates.start.tobytes(), x.tobytes())) or stage1_gauss_newton_over(
         chunks, theta, coordinates.directions(most_free), guess_log, law_model(law), noise, scales, **static
     )
