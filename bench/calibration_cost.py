@@ -6,6 +6,7 @@ same shapes costs).
 
     .venv/bin/python bench/calibration_cost.py [--bags DIR] [--runs 1] [--with COMMIT_CHECKOUT]
         [--against COMMIT_CHECKOUT] [--guess-scale 3] [--cold-only] [--frictions paper,spinning_ring]
+        [-p NAME:=VALUE ...]
 
 Without `--bags` the campaign is simulated first. `--with DIR` adds, run by run in turn, the
 trainer of another checkout (e.g. `git worktree add /tmp/old <commit>`) with `--steps 40`, the
@@ -15,6 +16,8 @@ in turn with this one's (an A/B of two versions); `--guess-scale 3` starts from 
 guess's six contact constants times 3 (docs/calibration.md's campaign case); `--cold-only` runs only
 the defaults with an empty cache (and the other checkouts). `--frictions A,B` adds, in turn with the
 defaults, a cold run that lets the bags choose the friction model (`training.friction_models: [A, B]`).
+`-p NAME:=VALUE` changes a rig parameter for this checkout's runs only (e.g. `-p training.refinement:=gauss_newton
+--against DIR`, DIR a checkout of the same commit: the two refinements in turn).
 The campaign is trained with the axial loader as a conditional effect (issue 15's campaign case; `make demo`
 trains the brake beside it since 2026-11-28, which these figures leave out so that they compare over time).
 """
@@ -57,6 +60,8 @@ def main() -> int:
     parser.add_argument("--guess-scale", type=float, default=1.0, help="the reference contact guess times this")
     parser.add_argument("--cold-only", action="store_true", help="only the defaults with an empty cache")
     parser.add_argument("--frictions", help="friction models the bags choose from, comma-separated (a run of its own)")
+    parser.add_argument("-p", dest="parameters", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a rig parameter for this checkout's runs (not --against's or --with's)")
     args = parser.parse_args()
     python = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
@@ -69,6 +74,7 @@ def main() -> int:
         out = str(Path(tmp) / "c.yaml")
         guess = scaled_guess(args.guess_scale) if args.guess_scale != 1.0 else []
         train = [python, "-m", "touchdown_ros.cli", "train", *bags, "-o", out, "--overwrite", *LOADER, *guess]
+        ours = [*train, *(a for value in args.parameters for a in ("-p", value))]
         filled = {"cache": ""}  # the folder the last cold run of the defaults filled
 
         def with_cache(folder: str) -> dict[str, str]:
@@ -76,12 +82,12 @@ def main() -> int:
 
         def cold(*extra: str) -> dict:
             filled["cache"] = tempfile.mkdtemp(dir=tmp, prefix="cache-")
-            return timed([*train, *extra], env=with_cache(filled["cache"]))
+            return timed([*ours, *extra], env=with_cache(filled["cache"]))
 
         cases = {
             "stage 1 only (--steps 0), cold cache": lambda: cold("--steps", "0"),
             "stage 1 + stage 2 (defaults), cold cache": cold,
-            "stage 1 + stage 2 (defaults), warm cache": lambda: timed(train, env=with_cache(filled["cache"])),
+            "stage 1 + stage 2 (defaults), warm cache": lambda: timed(ours, env=with_cache(filled["cache"])),
         }
         if args.cold_only:
             cases = {"stage 1 + stage 2 (defaults), cold cache": cold}
