@@ -301,6 +301,12 @@ def test_gauss_newton_finds_a_nonlinear_least_squares_minimum_in_a_few_steps_wit
     assert at_bound.converged and bounded[1] == 2.5 and terms(bounded)[1][1] < 0.0
     assert at_bound.final_loss > convergence.final_loss
 
+    def spotty(theta):  # the tangents diverge beyond a = 1.9 (short of the minimum) where the loss does not
+        return (np.nan, *terms(theta)[1:]) if theta[0] > 1.9 else terms(theta)
+
+    held_back, spotted = gauss_newton(spotty, value, start, 100, 1e-10, "spotty", io.StringIO())
+    assert held_back[0] <= 1.9 and spotted.final_loss == value(held_back) < spotted.initial_loss
+
     text = io.StringIO()
     _, diverged = gauss_newton(lambda x: (np.nan, x, np.eye(3)), value, start, 100, 1e-10, "nan", text)
     assert not diverged.converged and diverged.steps == 0 and diverged.initial_loss == DIVERGED_LOSS
