@@ -569,8 +569,8 @@ def stage1_gauss_newton(
 ) -> GaussNewtonTerms:
     """`GaussNewtonTerms` of `stage1_value` (the same arguments, and the p `directions` as in
     `fisher_information`); with a mesh, each device takes its share of the records and the sums are added.
-    Forward-mode AD: with the filter's long scan about twice the cost of `stage1_value_and_grad` for a
-    dozen directions, and the information comes with it."""
+    Forward-mode AD: on the campaign's 21 records about twice the time of `stage1_value_and_grad` for 16
+    directions (4.9 against 2.3 s), and the information comes with it."""
     if mesh is None:
         total, d_total, information = _data_terms(theta, directions, base, noise, scales, h, batch, kind)
     else:
