@@ -362,7 +362,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             )
         return text
 
-    newton_terms: dict[tuple, Any] = {}  # `stage1_gauss_newton_over` on all records by (law, coordinates, x)
+    newton_terms: dict[tuple, Any] = {}  # Gauss-Newton's terms on all records by (law, coordinates, x)
 
     def problem(
         law: ContactLaw, records: tuple[Batch, ...], coordinates: Coordinates = coordinates, screened: bool = False
@@ -373,25 +373,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         records = tuple(map(screened_records, records)) if screened else records
         base = law_model(screening(law) if screened else law)
         arguments = (guess_log, base, screen_noise if screened else noise, scales)
-        directions = coordinates.directions(most_free)
-        precision = 1.0 / coordinates.prior_sd(settings.prior_width, clearance_prior_sd) ** 2
-        samples = sum(int(np.sum(np.asarray(r.valid))) for r in records)
-
-        def terms(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-            """J, its gradient and its Gauss-Newton Hessian at x (the information kept for the standard errors)."""
-            key = (law.label, coordinates.start.tobytes(), x.tobytes())
-            got = newton_terms[key] = stage1_gauss_newton_over(
-                records, coordinates.theta(x), directions, *arguments, **static
-            )
-            free = len(x)
-            hessian = 2.0 * (got.information[:free, :free] + np.diag(precision)) / samples
-            return got.value, got.gradient[:free], hessian
-
         return Problem(
             coordinates.objective(lambda theta: stage1_value_and_grad_over(records, theta, *arguments, **static)),
             coordinates.loss(lambda theta: stage1_value_over(records, theta, *arguments, **static)),
             coordinates.initial(log_f0=guess_log),
-            terms,
+            arguments,
         )
 
     def refine(
@@ -403,8 +389,20 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         if not by_gauss_newton:
             return minimise(refined.objective, x, settings.calibration_steps, tolerance, label, stream, describe,
                             bounds=bounds)
-        return gauss_newton(refined.terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream,
-                            describe, bounds=bounds)
+        directions = coordinates.directions(most_free)
+        precision = 1.0 / coordinates.prior_sd(settings.prior_width, clearance_prior_sd) ** 2
+
+        def terms(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+            """J, its gradient and its Gauss-Newton Hessian at x (the information kept for the standard errors)."""
+            key = (law.label, coordinates.start.tobytes(), x.tobytes())
+            got = newton_terms[key] = stage1_gauss_newton_over(
+                chunks, coordinates.theta(x), directions, *refined.arguments, **static
+            )
+            free = len(x)
+            return got.value, got.gradient[:free], 2.0 * (got.information[:free, :free] + np.diag(precision)) / n_valid
+
+        return gauss_newton(terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream, describe,
+                            bounds=bounds)
 
     def support_grid(law: ContactLaw, theta: Stage1, records: Batch) -> list[np.ndarray]:
         """ln preload and ln span (N) where a yielding support of `law` may start under theta's constants
@@ -618,7 +616,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     free = len(coordinates.names)
     ahead.wait(GAUSS_NEWTON_PROGRAM)
     terms = newton_terms.get((law.label, coordinates.start.tobytes(), x.tobytes())) or stage1_gauss_newton_over(
-        chunks, theta, coordinates.directions(most_free), guess_log, law_model(law), noise, scales, **static
+        chunks, theta, coordinates.directions(most_free), *problem(law, chunks, coordinates).arguments, **static
     )
     information = terms.information[:free, :free]
     covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_prior_sd))
@@ -832,7 +830,7 @@ class Problem(NamedTuple):
     objective: Callable[[np.ndarray], tuple[float, np.ndarray]]  # the loss and its gradient (for `minimise`)
     loss: Callable[[np.ndarray], float]  # the loss alone (start grids, restarts)
     start: np.ndarray  # the free coordinates at the YAML's guess
-    terms: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]]  # loss, gradient, Gauss-Newton Hessian
+    arguments: tuple  # the stage-1 programs' arguments after theta (the law's guess, model, noise, scales)
 
 
 class Candidate(NamedTuple):
