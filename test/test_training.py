@@ -390,6 +390,40 @@ def test_a_compilation_waited_for_before_its_turn_is_compiled_at_once_beside_the
     assert compiled == [("jit(needed)", f"{THREAD_NAME}-needed_0")]
 
 
+def test_a_wait_for_a_compilation_ahead_is_reported_when_it_blocks(monkeypatch):
+    """Where the work waits for a program compiled ahead (the trainer's silent stretches), `Ahead.wait`
+    says how long and for which; a program already compiled when needed is not reported."""
+    import time
+
+    from touchdown_ros.workflows import ahead as ahead_module
+
+    monkeypatch.setattr(ahead_module, "REPORTED_WAIT", 0.1)
+
+    class Slow:
+        """A program whose compilation takes 0.4 s."""
+
+        def lower(self, *args, **kwargs) -> "Slow":
+            return self
+
+        def compile(self) -> None:
+            time.sleep(0.4)
+
+    class Quick(Slow):
+        def compile(self) -> None:
+            pass
+
+    stream = io.StringIO()
+    with ahead_module.Ahead(stream) as ahead:
+        ahead.compile("the quick program", Quick())
+        ahead.compile("the slow program", Slow())
+        ahead.start()
+        ahead.wait("the quick program")
+        ahead.wait("the slow program")
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("[compile] waited ") and lines[0].endswith(" s for the slow program")
+    assert 0.1 <= float(lines[0].split()[2]) < 5.0, lines
+
+
 def test_a_compilation_ahead_that_fails_leaves_a_note_and_the_call_compiles_it():
     """`Ahead` is an optimisation: a program it cannot compile is reported and compiled when called."""
     from touchdown_ros.workflows.ahead import Ahead

@@ -9,6 +9,7 @@ fills the same cache the later call looks in (JAX's, in memory, and the persiste
 """
 from __future__ import annotations
 
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable
 
@@ -17,6 +18,8 @@ from touchdown_ros.workflows.progress import STDERR
 
 #: Name (prefix) of the background thread.
 THREAD_NAME = "touchdown-compile-ahead"
+#: s; a wait for a compilation at least this long is reported (where the work waited instead of computing).
+REPORTED_WAIT = 1.0
 
 
 class Ahead:
@@ -62,18 +65,24 @@ class Ahead:
         """Block until `name` is compiled (the later call then finds it instead of compiling it a second
         time beside the first); one never started is dropped (the call compiles it). One still waiting
         behind others in the queue is compiled at once, beside the one under way (the caller's core is
-        idle meanwhile). A failure only means the call compiles it: a note says so, no error."""
+        idle meanwhile). A failure only means the call compiles it: a note says so, no error. A wait of
+        REPORTED_WAIT or more is reported."""
         self._queued.pop(name, None)
         job, build = self._jobs.pop(name, (None, None))
         if job is None:
             return
         if job.cancel():  # still queued
             job = self._needed.submit(build)
+        started = time.perf_counter()
         try:
             job.result()
         except Exception as error:  # noqa: BLE001 (an optimisation failed: the call compiles it itself)
             print(f"note: compiling {name} ahead failed ({type(error).__name__}: {error}); compiled when needed",
                   file=self._stream, flush=True)
+            return
+        waited = time.perf_counter() - started
+        if waited >= REPORTED_WAIT:
+            print(f"[compile] waited {waited:.1f} s for {name}", file=self._stream, flush=True)
 
     def close(self) -> None:
         """Drop the compilations not yet started; one under way finishes in the background."""

@@ -531,12 +531,15 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         r = next((r for r in refined if not r.yields and r.law == c.law), None)
         below = r is not None and r.convergence.final_loss < c.convergence.final_loss
         loss = problem(c.law, chunks, c.coordinates).loss
-        starts = []
+        started, starts = time.perf_counter(), []
         for theta in (theta_c, r.coordinates.theta(r.x)) if below else (theta_c,):
             own = [theta_c.log_support] if theta is not theta_c else []
             grid = support_grid(c.law, theta, screen_batch)
             starts += [with_support_at(c.coordinates, theta, s) for s in (*own, *grid)]
         start_loss, start = min(((loss(x), x) for x in starts), key=lambda pair: pair[0])
+        print(f"[support restart] {c.name}: the lowest loss of {len(starts)} starts on the support grid "
+              f"{start_loss:.7g} against the fit's {c.convergence.final_loss:.7g}  "
+              f"{time.perf_counter() - started:.1f} s elapsed", file=stream, flush=True)
         if start_loss >= c.convergence.final_loss:
             return c
         constants = f"its own or {r.name}'s constants" if below else "its own constants"
@@ -614,10 +617,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     guess = convert_guess(config.nominal, config.law, law, settings.reference_deformation)
     theta = coordinates.theta(x)
     free = len(coordinates.names)
+    started = time.perf_counter()
     ahead.wait(GAUSS_NEWTON_PROGRAM)
     terms = newton_terms.get((law.label, coordinates.start.tobytes(), x.tobytes())) or stage1_gauss_newton_over(
         chunks, theta, coordinates.directions(most_free), *problem(law, chunks, coordinates).arguments, **static
     )
+    print(f"[standard errors] the loss's curvature in {free} coordinates on {len(data.paths)} bag(s)  "
+          f"{time.perf_counter() - started:.1f} s elapsed", file=stream, flush=True)
     information = terms.information[:free, :free]
     covariance = posterior_covariance(information, coordinates.prior_sd(settings.prior_width, clearance_prior_sd))
     sd, correlation = standard_errors_and_correlation(covariance)
