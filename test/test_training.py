@@ -143,6 +143,65 @@ def test_lambda_is_chosen_by_the_held_out_loss():
     assert path.regularisation == 1e-5 and path.result.steps == second["steps"]
 
 
+def test_the_one_standard_error_rule_takes_the_simplest_fit_the_held_out_blocks_cannot_tell_from_the_best():
+    """`within_one_standard_error`: fits from the most to the least regularised, by their held-out errors' block
+    sums. A simpler fit above the best by less than the paired differences' standard error is chosen; one above it
+    by more is not; the numbers are the paired mean and standard error per held-out sample. `held_out_block_sums`
+    adds up each held-out run of valid samples of each record."""
+    from touchdown_ros.core.training import held_out_block_sums, within_one_standard_error
+
+    rng = np.random.default_rng(7)
+    best = 100.0 + rng.standard_normal(40)
+    noise = rng.standard_normal(40)
+    close = best + 0.05 + noise  # above by 0.05 a block on average, sd 1: within one standard error (0.16)
+    far = best + 2.0 + noise  # above by 2 a block: not
+    chosen, above, error = within_one_standard_error([far, close, best], samples=400)
+    assert chosen == 1
+    differences = close - best
+    assert above[1] == pytest.approx(differences.sum() / 400, rel=1e-12)
+    assert error[1] == pytest.approx(np.sqrt(40) * np.std(differences, ddof=1) / 400, rel=1e-12)
+    assert above[2] == 0.0 and above[0] > error[0] > 0.0
+    assert within_one_standard_error([far, best, close], samples=400)[0] == 1  # the best itself
+    assert within_one_standard_error([far, best], samples=400)[0] == 1
+
+    batch = make_batch([np.zeros((12, 3)), np.zeros((10, 3))], np.asarray(CONFIG.noise.initial))
+    batch = hold_out(batch, block=2, every=3)._replace(valid=jnp.asarray(np.arange(12) != 5)[None, :].repeat(2, 0))
+    errors = np.arange(24.0).reshape(2, 12)
+    held = np.asarray(batch.held_out) & np.asarray(batch.valid)
+    sums = held_out_block_sums(errors, batch)
+    assert sums.sum() == errors[held].sum() and len(sums) == 4  # (4, 11), (10, 11), (14, 15), (20, 21)
+    np.testing.assert_array_equal(sums, [4.0, 21.0, 29.0, 41.0])
+
+
+def test_the_path_by_one_standard_error_records_each_lambdas_distance_from_the_lowest():
+    """With `training.regularisation_choice: one_standard_error` the path records each lambda's held-out loss
+    above the lowest and its standard error, and chooses by them; the block sums add up to the held-out loss the
+    optimiser kept. (Here, large PKBKR terms in the truth, the smaller lambda's fall is about one standard error
+    of 12 blocks: the rule asks a lot of few held-out blocks.)"""
+    records = records_of(true_coeffs(), count=3, samples=400)
+    data = TrainingData((), tuple(records))
+    start = Trainable(Coefficients.zeros(CONFIG.kernel), CONFIG.effects)
+    config = dataclasses.replace(
+        CONFIG, training=dataclasses.replace(CONFIG.training, patience=3, regularisation_choice="one_standard_error")
+    )
+    stream = io.StringIO()
+    path = fit_regularisation_path(config, data, [1e-5, 1e2], start, 100, stream=stream)
+    first, second = path.tried
+    for t in path.tried:
+        assert np.sum(t["held_out_block_sums"]) / t["held_out_samples"] == pytest.approx(t["held_out_loss"], rel=1e-9)
+    assert second["held_out_loss"] < first["held_out_loss"] and second["held_out_above_lowest"] == 0.0
+    assert first["held_out_above_lowest"] == pytest.approx(first["held_out_loss"] - second["held_out_loss"], rel=1e-9)
+    assert first["standard_error"] > 0.0
+    if first["held_out_above_lowest"] <= first["standard_error"]:
+        assert path.regularisation == 1e2 and "chosen 100 (within one standard error of the lowest, 1e-05" in (
+            stream.getvalue()
+        )
+        assert path.result.steps == first["steps"]
+    else:
+        assert path.regularisation == 1e-5 and "chosen 1e-05 (the lowest)" in stream.getvalue()
+    assert "held_out_block_sums" not in path.as_dict()["tried"][0]
+
+
 def test_an_interrupted_lambda_path_goes_on_where_it_stopped():
     """Resumed after its first lambda (as `train --resume` does from the checkpoint's record), the path
     fits only the lambdas it had not finished and ends where the uninterrupted path ends."""

@@ -138,10 +138,14 @@ def errors_of_innovations(errors: Array, S: Array, measurement: Array, valid: Ar
     return jnp.where(valid, value, 0.0)
 
 
-def _fitted_and_held_out_sums(model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str) -> Array:
-    """(2,) sums of the output error over the fitted and the held-out valid samples."""
+def _sums_and_held_out_errors(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, kind: str
+) -> tuple[Array, Array]:
+    """(2,) sums of the output error over the fitted and the held-out valid samples, and the (B, L) errors
+    of the held-out samples (0 elsewhere)."""
     errors = sample_errors(model, noise, h, batch, kind)
-    return jnp.stack([jnp.sum(jnp.where(batch.held_out, 0.0, errors)), jnp.sum(jnp.where(batch.held_out, errors, 0.0))])
+    held_out = jnp.where(batch.held_out, errors, 0.0)
+    return jnp.stack([jnp.sum(jnp.where(batch.held_out, 0.0, errors)), jnp.sum(held_out)]), held_out
 
 
 def output_errors(
@@ -154,22 +158,60 @@ def output_errors(
     own loop and the sums are added (the batch size must be a multiple of the mesh size:
     `pad_records`); the same numbers as without.
     """
+    return output_errors_and_held_out(model, noise, h, batch, mesh, kind)[:2]
+
+
+def output_errors_and_held_out(
+    model: Model, noise: FilterNoise, h: float, batch: Batch, mesh: Mesh | None = None, kind: str = "one_step"
+) -> tuple[Array, Array, Array]:
+    """`output_errors` and the (B, L) output errors of the held-out samples (0 elsewhere), from the same pass:
+    the per-block errors that `held_out_block_sums` adds up."""
     if mesh is None:
-        totals = _fitted_and_held_out_sums(model, noise, h, batch, kind)
+        totals, held_out = _sums_and_held_out_errors(model, noise, h, batch, kind)
     else:
 
-        def share(local: Model, local_noise: FilterNoise, records: Batch) -> Array:
-            return jax.lax.psum(_fitted_and_held_out_sums(local, local_noise, h, records, kind), RECORDS)
+        def share(local: Model, local_noise: FilterNoise, records: Batch) -> tuple[Array, Array]:
+            sums, held_out = _sums_and_held_out_errors(local, local_noise, h, records, kind)
+            return jax.lax.psum(sums, RECORDS), held_out
 
         # check_vma off: the identity cotangents of dynamics.phi_and_jacobian are built
         # inside and carry no varying-axis type; nothing here is replicated across devices.
-        totals = jax.shard_map(
-            share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=P(), check_vma=False
+        totals, held_out = jax.shard_map(
+            share, mesh=mesh, in_specs=(P(), P(), P(RECORDS)), out_specs=(P(), P(RECORDS)), check_vma=False
         )(jax.tree.map(jnp.asarray, model), jax.tree.map(jnp.asarray, noise), batch)
     held = batch.valid & batch.held_out
     held_count = jnp.sum(held)
     fitted = totals[0] / jnp.sum(batch.valid & ~batch.held_out)
-    return fitted, jnp.where(held_count > 0, totals[1] / held_count, jnp.nan)
+    return fitted, jnp.where(held_count > 0, totals[1] / held_count, jnp.nan), held_out
+
+
+def held_out_block_sums(errors: np.ndarray, batch: Batch) -> np.ndarray:
+    """The held-out errors (B, L) summed over each held-out block (`hold_out`: a run of held-out valid samples
+    of one record), record after record: the same blocks for every model of one batch, so two models'
+    sums pair up."""
+    held = np.asarray(batch.held_out) & np.asarray(batch.valid)
+    errors = np.asarray(errors)
+    sums = []
+    for record, mask in enumerate(held):
+        index = np.flatnonzero(mask)
+        for block in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if index.size else ():
+            sums.append(errors[record, block].sum())
+    return np.asarray(sums, dtype=float)
+
+
+def within_one_standard_error(block_sums: list[np.ndarray], samples: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """The one-standard-error rule on fits ordered from the most to the least regularised, each given by its
+    held-out errors' block sums (`held_out_block_sums`: the same blocks, `samples` held-out samples in all): the
+    first fit whose held-out loss is above the lowest's by at most one standard error of their paired per-block
+    differences, the simplest model the held-out data cannot tell from the best. Returns (its index, each
+    fit's held-out loss above the lowest's, each difference's standard error), per held-out sample."""
+    sums = np.asarray(block_sums, dtype=float)
+    blocks = sums.shape[1]
+    differences = sums - sums[int(np.argmin(sums.sum(axis=1)))]
+    above = differences.sum(axis=1) / samples
+    error = np.sqrt(blocks) * differences.std(axis=1, ddof=1) / samples if blocks > 1 else np.zeros(len(sums))
+    chosen = next(i for i in range(len(sums)) if above[i] <= error[i])
+    return chosen, above, error
 
 
 def output_error(
@@ -203,13 +245,14 @@ def loss_and_held_out(
     effects: Effects | None = None,
     mesh: Mesh | None = None,
     kind: str = "one_step",
-) -> tuple[Array, Array]:
-    """Eq. 18 with the output error `kind` normalised as in output_errors, and the held-out output
-    error (not part of the loss); `effects` (with their physical parameters, not penalised) replace
-    the model's when given; `mesh` spreads the records over devices (`output_errors`)."""
+) -> tuple[Array, tuple[Array, Array]]:
+    """Eq. 18 with the output error `kind` normalised as in output_errors, and (not part of the loss) the
+    held-out output error and the (B, L) errors of the held-out samples (`output_errors_and_held_out`);
+    `effects` (with their physical parameters, not penalised) replace the model's when given; `mesh` spreads
+    the records over devices (`output_errors`)."""
     trained = model._replace(coeffs=coeffs, effects=model.effects if effects is None else effects)
-    fitted, held_out = output_errors(trained, noise, h, batch, mesh, kind)
-    return fitted + lam * rkhs_distance(model.kernel, coeffs), held_out
+    fitted, held_out, held_out_errors = output_errors_and_held_out(trained, noise, h, batch, mesh, kind)
+    return fitted + lam * rkhs_distance(model.kernel, coeffs), (held_out, held_out_errors)
 
 
 def loss(*args, **kwargs) -> Array:

@@ -54,6 +54,8 @@ SEARCH_CHOICES = ("standard", "thorough")
 #: training.refinement: how stage 1 refines the chosen law on all bags: gauss_newton (Levenberg-Marquardt on the
 #: Fisher information) or lbfgs (L-BFGS-B on the gradient, the optimiser until 2026-12-01).
 REFINEMENT_CHOICES = ("gauss_newton", "lbfgs")
+#: How stage 2 picks lambda among those tried (`workflows.train.fit_regularisation_path`).
+REGULARISATION_CHOICES = ("lowest", "one_standard_error")
 #: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding,
 #: given (contact.support_preload and support_span as the YAML says, held: a mount's data sheet).
 SUPPORT_CHOICES = ("auto", "rigid", "yielding", "given")
@@ -85,6 +87,7 @@ class TrainingSettings:
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
+    regularisation_choice: str = "lowest"  # stage 2's lambda (REGULARISATION_CHOICES)
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
@@ -482,6 +485,9 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         held_out_every=read.integer("training.held_out_every", d.held_out_every, minimum=0),
         held_out_block=read.number("training.held_out_block", d.held_out_block, positive=True),
         patience=read.integer("training.patience", d.patience, minimum=1),
+        regularisation_choice=read.choice(
+            "training.regularisation_choice", d.regularisation_choice, REGULARISATION_CHOICES
+        ),
         axial_support=axial_support,
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
         refinement=read.choice("training.refinement", d.refinement, REFINEMENT_CHOICES),

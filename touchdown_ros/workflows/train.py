@@ -36,7 +36,13 @@ from touchdown_ros.core.smoothing import (
     mean_missing_force_variance,
     missing_force_squares,
 )
-from touchdown_ros.core.training import Batch, hold_out, loss_and_held_out
+from touchdown_ros.core.training import (
+    Batch,
+    held_out_block_sums,
+    hold_out,
+    loss_and_held_out,
+    within_one_standard_error,
+)
 from touchdown_ros.core.types import OUTPUT_SIZE, Coefficients, FilterNoise, Model
 from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients, sha256_of
 from touchdown_ros.io.config import Config
@@ -62,6 +68,8 @@ class TrainingResult:
     seconds: float
     history: tuple[float, ...]
     convergence: Convergence | None = None
+    held_out_blocks: np.ndarray | None = None  # the kept step's held-out errors per block (`held_out_block_sums`)
+    held_out_samples: int = 0  # how many held-out samples those blocks hold
 
 
 class Trainable(NamedTuple):
@@ -75,13 +83,13 @@ class Trainable(NamedTuple):
 def stage2_value_and_grad(
     trainable: Trainable, scales: Effects, batch: Batch, regularisation: jax.Array, w: Whitening, model: Model,
     noise: FilterNoise, h: float, kind: str, mesh: Mesh | None,
-) -> tuple[tuple[jax.Array, jax.Array], Trainable]:
-    """((loss, held-out loss), gradient of the loss) of eq. 18 in (whitened coefficients beta, scaled
-    effect parameters). The model and the noise are arguments, not constants of the program, so one
-    compilation serves every rig of one shape and can start before stage 1 has calibrated them
+) -> tuple[tuple[jax.Array, tuple[jax.Array, jax.Array]], Trainable]:
+    """((loss, (held-out loss, held-out samples' errors)), gradient of the loss) of eq. 18 in (whitened
+    coefficients beta, scaled effect parameters). The model and the noise are arguments, not constants of the
+    program, so one compilation serves every rig of one shape and can start before stage 1 has calibrated them
     (`compile_stage2_ahead`)."""
 
-    def objective(trainable: Trainable) -> tuple[jax.Array, jax.Array]:
+    def objective(trainable: Trainable) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         effects = apply_scales(trainable.effects, scales)
         return loss_and_held_out(
             coloured(w, trainable.coeffs), model, noise, h, batch, regularisation, effects, mesh, kind
@@ -195,7 +203,7 @@ def fit(
         return Trainable(coloured(w, scaled.coeffs), apply_scales(scaled.effects, scales))
 
     def value_and_grad(theta: np.ndarray):
-        (value, held_out), grad = objective(*problem.arguments(theta, regularisation))
+        (value, (held_out, _)), grad = objective(*problem.arguments(theta, regularisation))
         gradient = np.asarray(ravel_pytree(jax.device_get(grad))[0], dtype=float)
         return (float(value), gradient, float(held_out)) if settings.held_out_every > 1 else (float(value), gradient)
 
@@ -221,6 +229,11 @@ def fit(
             "check the bags and the filter noise"
         )
     fitted = physical(theta)
+    blocks, samples = None, 0
+    if settings.held_out_every > 1:  # the kept step's held-out errors block by block (one more call)
+        (_, (_, held_out_errors)), _ = objective(*problem.arguments(theta, regularisation))
+        blocks = held_out_block_sums(np.asarray(held_out_errors), batch)
+        samples = int(np.sum(np.asarray(batch.held_out) & np.asarray(batch.valid)))
     return TrainingResult(
         coeffs=fitted.coeffs,
         effects=fitted.effects,
@@ -230,6 +243,8 @@ def fit(
         seconds=convergence.seconds,
         history=convergence.history,
         convergence=convergence,
+        held_out_blocks=blocks,
+        held_out_samples=samples,
     )
 
 
@@ -241,7 +256,13 @@ class RegularisationPath(NamedTuple):
     tried: tuple[dict, ...]  # per lambda: its held-out loss at its start and kept step, steps, kept step
 
     def as_dict(self) -> dict:
-        return {"chosen": self.regularisation, "tried": list(self.tried)}
+        """As the coefficient file records it (without the held-out blocks' sums, which the checkpoint keeps)."""
+        return {"chosen": self.regularisation,
+                "tried": [{k: v for k, v in t.items() if k != HELD_OUT_BLOCKS} for t in self.tried]}
+
+
+#: Key of a tried lambda's held-out errors per block in the path's record (`TrainingResult.held_out_blocks`).
+HELD_OUT_BLOCKS = "held_out_block_sums"
 
 
 class PathProgress(NamedTuple):
@@ -250,6 +271,7 @@ class PathProgress(NamedTuple):
     tried: tuple[dict, ...] = ()  # the finished lambdas, as `RegularisationPath.tried`
     chosen: tuple[TrainingResult, float, float] | None = None  # the lowest so far: (fit, lambda, held-out loss)
     current: Trainable | None = None  # the interrupted lambda's last step, where its fit continues
+    fits: tuple[tuple[float, TrainingResult], ...] = ()  # every finished lambda's fit (the one-standard-error rule)
 
 
 def fit_regularisation_path(
@@ -269,6 +291,8 @@ def fit_regularisation_path(
     fit before: from another lambda's optimum the loss changes too little for L-BFGS to go on.)
     Each fit must converge (else the error names `knob`); `on_step(lambda, step, loss, fitted)`
     after every step, `on_lambda(progress)` after every lambda that does not end the path.
+    With `training.regularisation_choice: one_standard_error` the largest lambda tried whose held-out loss is
+    within one standard error of the lowest is chosen instead (`core.training.within_one_standard_error`).
     From `progress` (an interrupted path), its finished lambdas are not fitted again and the next one
     continues from `progress.current`.
     Without held-out blocks nothing can choose: the smallest lambda alone, with a note."""
@@ -279,7 +303,7 @@ def fit_regularisation_path(
         print(f"note: no held-out blocks (training.held_out_every) to choose lambda by: {lambdas[-1]:g}", file=stream)
         lambdas = lambdas[-1:]
     objective = make_objective(config)
-    chosen, tried, current = progress.chosen, list(progress.tried), progress.current
+    chosen, tried, current, fits = progress.chosen, list(progress.tried), progress.current, dict(progress.fits)
     done = {t["regularisation"] for t in tried}
     for lam in lambdas:
         if lam in done:
@@ -299,16 +323,42 @@ def fit_regularisation_path(
         tried.append({
             "regularisation": lam, "held_out_loss_start": held_out[0], "held_out_loss": loss,
             "steps": result.steps, "kept_step": kept,
+            **({HELD_OUT_BLOCKS: result.held_out_blocks.tolist(), "held_out_samples": result.held_out_samples}
+               if result.held_out_blocks is not None else {}),
         })
+        fits[lam] = result
         if chosen is not None and not loss < chosen[2]:
             break
         chosen = (result, lam, loss)
         if on_lambda is not None:
-            on_lambda(PathProgress(tuple(tried), chosen))
+            on_lambda(PathProgress(tuple(tried), chosen, None, tuple(fits.items())))
+    how = "the lowest"
+    if config.training.regularisation_choice == "one_standard_error" and len(tried) > 1:
+        chosen, how = _within_one_standard_error(tried, fits, chosen)
     if len(lambdas) > 1:
         text = ", ".join(f"{t['regularisation']:g}: {t['held_out_loss']:.7g}" for t in tried)
-        print(f"[PKBKR] held-out loss by lambda {text}; chosen {chosen[1]:g}", file=stream, flush=True)
+        print(f"[PKBKR] held-out loss by lambda {text}; chosen {chosen[1]:g} ({how})", file=stream, flush=True)
     return RegularisationPath(chosen[0], chosen[1], tuple(tried))
+
+
+def _within_one_standard_error(
+    tried: list[dict], fits: dict[float, TrainingResult], lowest: tuple[TrainingResult, float, float]
+) -> tuple[tuple[TrainingResult, float, float], str]:
+    """(the fit, its lambda and held-out loss) of the largest lambda whose held-out loss is within one standard
+    error of the lowest's, and how it was chosen; each tried lambda's record gets its loss above the lowest and
+    that standard error."""
+    index, above, error = within_one_standard_error(
+        [np.asarray(t[HELD_OUT_BLOCKS]) for t in tried], int(tried[0]["held_out_samples"])
+    )
+    for t, a, e in zip(tried, above, error):
+        t.update(held_out_above_lowest=float(a), standard_error=float(e))
+    lam = float(tried[index]["regularisation"])
+    if lam == lowest[1]:
+        return lowest, "the lowest"
+    return (fits[lam], lam, float(tried[index]["held_out_loss"])), (
+        f"within one standard error of the lowest, {lowest[1]:g}: {above[index]:+.4g} +- {error[index]:.2g} per "
+        "held-out sample"
+    )
 
 
 def _merge_effects(active: Effects, started: Effects) -> Effects:
@@ -617,10 +667,16 @@ def _resumed_path(
     """(the start of the lambdas not yet begun, the interrupted path) from a checkpoint's record."""
     start = Trainable(Coefficients.zeros(calibrated.kernel), config.effects.with_values(extra["stage2_start_effects"]))
     so_far = extra.get("regularisation_path_so_far") or {}
-    best, chosen = so_far.get("best"), None
+    best, chosen, fits = so_far.get("best"), None, []
+    tried = tuple(so_far.get("tried") or ())
+    for t in tried:  # each finished lambda was the lowest when it ended, so its fit was kept
+        kept = load_coefficients(lambda_fit_path(out, float(t["regularisation"])), config)
+        fits.append((float(t["regularisation"]), TrainingResult(
+            kept.coeffs, _merge_effects(config.effects, kept.effects), t.get("initial_loss", float("nan")),
+            t.get("final_loss", float("nan")), t["steps"], 0.0, (),
+        )))
     if best is not None:
-        kept = load_coefficients(lambda_fit_path(out, float(best["regularisation"])), config)
-        fitted = TrainingResult(kept.coeffs, _merge_effects(config.effects, kept.effects), best["initial_loss"],
-                                best["final_loss"], best["steps"], 0.0, ())
+        fitted = dict(fits)[float(best["regularisation"])]
+        fitted = replace(fitted, initial_loss=best["initial_loss"], final_loss=best["final_loss"])
         chosen = (fitted, float(best["regularisation"]), float(best["held_out_loss"]))
-    return start, PathProgress(tuple(so_far.get("tried") or ()), chosen, current)
+    return start, PathProgress(tried, chosen, current, tuple(fits))
