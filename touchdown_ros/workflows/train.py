@@ -230,7 +230,8 @@ def fit(
         )
     fitted = physical(theta)
     blocks, samples = None, 0
-    if settings.held_out_every > 1:  # the kept step's held-out errors block by block (one more call)
+    if settings.held_out_every > 1 and settings.regularisation_choice == "one_standard_error":
+        # the kept step's held-out errors block by block, for the choice of lambda (one more call)
         (_, (_, held_out_errors)), _ = objective(*problem.arguments(theta, regularisation))
         blocks = held_out_block_sums(np.asarray(held_out_errors), batch)
         samples = int(np.sum(np.asarray(batch.held_out) & np.asarray(batch.valid)))
@@ -334,7 +335,10 @@ def fit_regularisation_path(
             on_lambda(PathProgress(tuple(tried), chosen, None, tuple(fits.items())))
     how = "the lowest"
     if config.training.regularisation_choice == "one_standard_error" and len(tried) > 1:
-        chosen, how = _within_one_standard_error(tried, fits, chosen)
+        if all(HELD_OUT_BLOCKS in t for t in tried):
+            chosen, how = _within_one_standard_error(tried, fits, chosen)
+        else:  # a checkpoint of a path begun with another choice
+            how = "the lowest: the held-out blocks of the lambdas fitted before the interruption are not recorded"
     if len(lambdas) > 1:
         text = ", ".join(f"{t['regularisation']:g}: {t['held_out_loss']:.7g}" for t in tried)
         print(f"[PKBKR] held-out loss by lambda {text}; chosen {chosen[1]:g} ({how})", file=stream, flush=True)
