@@ -169,7 +169,8 @@ def test_the_one_standard_error_rule_takes_the_simplest_fit_the_held_out_blocks_
     errors = np.arange(24.0).reshape(2, 12)
     held = np.asarray(batch.held_out) & np.asarray(batch.valid)
     sums = held_out_block_sums(errors, batch)
-    assert sums.sum() == errors[held].sum() and len(sums) == 4  # (4, 11), (10, 11), (14, 15), (20, 21)
+    # record 0 holds out samples 4-5 (5 not valid) and 10-11, record 1 samples 2-3 and 8-9 (`hold_out`'s shift)
+    assert sums.sum() == errors[held].sum() and len(sums) == 4
     np.testing.assert_array_equal(sums, [4.0, 21.0, 29.0, 41.0])
 
 
