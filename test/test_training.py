@@ -201,6 +201,8 @@ def test_the_path_by_one_standard_error_records_each_lambdas_distance_from_the_l
     else:
         assert path.regularisation == 1e-5 and "chosen 1e-05 (the lowest)" in stream.getvalue()
     assert "held_out_block_sums" not in path.as_dict()["tried"][0]
+    chosen = next(t for t in path.tried if t["regularisation"] == path.regularisation)
+    assert chosen["final_loss"] == path.result.final_loss  # what a resumed path's choice rebuilds the fit's record from
 
 
 def test_an_interrupted_lambda_path_goes_on_where_it_stopped():

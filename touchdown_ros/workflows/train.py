@@ -324,8 +324,9 @@ def fit_regularisation_path(
         tried.append({
             "regularisation": lam, "held_out_loss_start": held_out[0], "held_out_loss": loss,
             "steps": result.steps, "kept_step": kept,
-            **({HELD_OUT_BLOCKS: result.held_out_blocks.tolist(), "held_out_samples": result.held_out_samples}
-               if result.held_out_blocks is not None else {}),
+            **({HELD_OUT_BLOCKS: result.held_out_blocks.tolist(), "held_out_samples": result.held_out_samples,
+                "initial_loss": result.initial_loss, "final_loss": result.final_loss}
+               if result.held_out_blocks is not None else {}),  # what a resumed path's choice needs of it
         })
         fits[lam] = result
         if chosen is not None and not loss < chosen[2]:
@@ -673,7 +674,7 @@ def _resumed_path(
     so_far = extra.get("regularisation_path_so_far") or {}
     best, chosen, fits = so_far.get("best"), None, []
     tried = tuple(so_far.get("tried") or ())
-    for t in tried:  # each finished lambda was the lowest when it ended, so its fit was kept
+    for t in tried:  # each finished lambda was the lowest when it ended, so its fit was kept (its losses with the rule)
         kept = load_coefficients(lambda_fit_path(out, float(t["regularisation"])), config)
         fits.append((float(t["regularisation"]), TrainingResult(
             kept.coeffs, _merge_effects(config.effects, kept.effects), t.get("initial_loss", float("nan")),
