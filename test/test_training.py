@@ -178,7 +178,7 @@ def test_the_path_by_one_standard_error_records_each_lambdas_distance_from_the_l
     """With `training.regularisation_choice: one_standard_error` the path records each lambda's held-out loss
     above the lowest and its standard error, and chooses by them; the block sums add up to the held-out loss the
     optimiser kept. (Here, large PKBKR terms in the truth, the smaller lambda's fall is about one standard error
-    of 12 blocks: the rule asks a lot of few held-out blocks.)"""
+    of its 4 blocks: the rule asks a lot of few held-out blocks.)"""
     records = records_of(true_coeffs(), count=3, samples=400)
     data = TrainingData((), tuple(records))
     start = Trainable(Coefficients.zeros(CONFIG.kernel), CONFIG.effects)
