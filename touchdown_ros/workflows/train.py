@@ -674,14 +674,17 @@ def _resumed_path(
     so_far = extra.get("regularisation_path_so_far") or {}
     best, chosen, fits = so_far.get("best"), None, []
     tried = tuple(so_far.get("tried") or ())
-    for t in tried:  # each finished lambda was the lowest when it ended, so its fit was kept (its losses with the rule)
-        kept = load_coefficients(lambda_fit_path(out, float(t["regularisation"])), config)
-        fits.append((float(t["regularisation"]), TrainingResult(
-            kept.coeffs, _merge_effects(config.effects, kept.effects), t.get("initial_loss", float("nan")),
-            t.get("final_loss", float("nan")), t["steps"], 0.0, (),
-        )))
+
+    def kept_fit(record: Mapping[str, Any]) -> TrainingResult:
+        """A finished lambda's fit from its file (`lambda_fit_path`) and its record's losses."""
+        kept = load_coefficients(lambda_fit_path(out, float(record["regularisation"])), config)
+        return TrainingResult(kept.coeffs, _merge_effects(config.effects, kept.effects), record["initial_loss"],
+                              record["final_loss"], record["steps"], 0.0, ())
+
     if best is not None:
-        fitted = dict(fits)[float(best["regularisation"])]
-        fitted = replace(fitted, initial_loss=best["initial_loss"], final_loss=best["final_loss"])
-        chosen = (fitted, float(best["regularisation"]), float(best["held_out_loss"]))
+        chosen = (kept_fit(best), float(best["regularisation"]), float(best["held_out_loss"]))
+    if config.training.regularisation_choice == "one_standard_error":
+        # the rule may choose any finished lambda: each was the lowest when it ended, so its fit was kept, and its
+        # record carries its losses
+        fits = [(float(t["regularisation"]), kept_fit(t)) for t in tried if HELD_OUT_BLOCKS in t]
     return start, PathProgress(tried, chosen, current, tuple(fits))
