@@ -150,8 +150,9 @@ def test_stage1_information_is_the_fisher_information_of_the_innovations(kind):
 @pytest.mark.parametrize("kind", ["nll", "one_step"])
 def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information(kind):
     """One forward pass gives J (`stage1_value`), its gradient (reverse-mode AD's) and the information
-    (`stage1_information`) along the free coordinates, the prior's part (guess, Q and a clearance's) included;
-    the records spread over the devices and in two chunks give the same (`stage1_gauss_newton_over`)."""
+    (`stage1_information`) along the free coordinates, the prior's part (guess, Q and a clearance's) included,
+    for either loss; the records spread over the devices and in two chunks give the same
+    (`stage1_gauss_newton_over`)."""
     from touchdown_ros.core.calibration import (
         RIGID_LOG_SUPPORT, Coordinates, Stage1, log_nominal, stage1_flags, stage1_gauss_newton,
         stage1_gauss_newton_over, stage1_information, stage1_value_and_grad, stage1_value_and_grad_over,
@@ -184,6 +185,8 @@ def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information(kind):
     largest = np.max(np.abs(information))
     np.testing.assert_allclose(np.asarray(terms.information)[:p, :p], information, rtol=1e-10, atol=1e-12 * largest)
     assert not np.any(np.asarray(terms.gradient)[p:]) and not np.any(np.asarray(terms.information)[p:])
+    if kind != "nll":
+        return  # how the records are spread does not depend on the loss: checked once (its programs compile long)
 
     mesh = record_mesh()
     spread = stage1_gauss_newton(start, coordinates.directions(p + 2), *arguments, place(batch, mesh), mesh=mesh,

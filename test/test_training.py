@@ -375,6 +375,34 @@ def test_gauss_newton_finds_a_nonlinear_least_squares_minimum_in_a_few_steps_wit
     assert "not finite at the start" in text.getvalue()
 
 
+def test_gauss_newton_hands_a_stalled_fit_to_its_fallback():
+    """Where the information understates the curvature and misses a coupling (a misfitted model's Fisher
+    information), Levenberg-Marquardt creeps along the valley of a quadratic heavily damped and reaches its step
+    cap short of the minimum; with L-BFGS as its fallback it hands over after STALL_STEPS such steps and the fit
+    ends at the minimum, the steps and history both runs'."""
+    from touchdown_ros.workflows.optimise import STALL_STEPS, gauss_newton, minimise
+
+    A, b = np.array([[1.0, 0.999], [0.999, 1.0]]), np.array([1.0, -0.5])
+
+    def value(x):
+        return float(0.5 * x @ A @ x - b @ x)
+
+    def terms(x):
+        return value(x), A @ x - b, np.eye(2) / 20.0
+
+    def by_lbfgs(x, steps):
+        return minimise(lambda y: (value(y), A @ y - b), x, steps, 1e-12, "valley, L-BFGS", io.StringIO())
+
+    start, minimum = np.array([3.0, -2.0]), np.linalg.solve(A, b)
+    _, alone = gauss_newton(terms, value, start, 100, 1e-12, "valley", io.StringIO())
+    assert not alone.converged and alone.steps == 100 and alone.final_loss > value(minimum) + 100.0
+    text = io.StringIO()
+    theta, handed = gauss_newton(terms, value, start, 100, 1e-12, "valley", text, fallback=by_lbfgs)
+    assert handed.converged and "stalled" in handed.reason and "L-BFGS goes on" in text.getvalue()
+    np.testing.assert_allclose(theta, minimum, rtol=1e-6)
+    assert STALL_STEPS < handed.steps == len(handed.history) < 100 and handed.final_loss == handed.history[-1]
+
+
 def test_progress_reaches_stderr_as_it_is_when_written(monkeypatch):
     """The workflows' default progress stream looks sys.stderr up at each write, so a redirection made
     after the modules were imported (a notebook, a test's capture) receives the lines."""

@@ -401,8 +401,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             free = len(x)
             return got.value, got.gradient[:free], 2.0 * (got.information[:free, :free] + np.diag(precision)) / n_valid
 
+        def by_lbfgs(x: np.ndarray, steps: int) -> tuple[np.ndarray, Convergence]:
+            return minimise(refined.objective, x, steps, tolerance, f"{label}, L-BFGS", stream, describe, bounds=bounds)
+
         return gauss_newton(terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream, describe,
-                            bounds=bounds)
+                            bounds=bounds, fallback=by_lbfgs)
 
     def support_grid(law: ContactLaw, theta: Stage1, records: Batch) -> list[np.ndarray]:
         """ln preload and ln span (N) where a yielding support of `law` may start under theta's constants

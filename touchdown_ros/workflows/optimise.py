@@ -65,6 +65,12 @@ def require_convergence(convergence: Convergence, stage: str, paths: Sequence[Pa
 DIVERGED_LOSS = 1.0e30
 #: `gauss_newton` goes on along a step that lowered the loss as predicted up to this many times its length.
 MAX_EXTENSION = 16.0
+#: A kept step whose loss fell by at least this share of its predicted fall agreed with the Gauss-Newton model
+#: (the usual bar of a successful trust-region step); a smaller fall below the tolerance is a stall, not convergence.
+GOOD_AGREEMENT = 0.25
+#: Kept steps in a row damped at or above the curvature's own diagonal: the Gauss-Newton model is not trusted
+#: where it points, and the steps creep (a misfitted model's Fisher information is not its loss's curvature).
+STALL_STEPS = 10
 
 
 def minimise(
@@ -225,6 +231,7 @@ def gauss_newton(
     stream=STDERR,
     describe: Callable[[np.ndarray], str] = lambda theta: "",
     bounds: Sequence[tuple[float, float]] | None = None,
+    fallback: Callable[[np.ndarray, int], tuple[np.ndarray, Convergence]] | None = None,
 ) -> tuple[np.ndarray, Convergence]:
     """Levenberg-Marquardt from theta0 on a loss whose `terms(theta)` are (loss, gradient, Gauss-Newton
     Hessian) and `value(theta)` the loss alone (the trial points): the step solves (H + mu diag H) d = -g,
@@ -235,7 +242,10 @@ def gauss_newton(
     not finite (the filter's tangents diverge where its loss does not) is not kept. Near a minimum of a
     likelihood the Gauss-Newton Hessian is the curvature, so it takes fewer steps than L-BFGS (on the campaign
     22 against 35, each a forward pass with one tangent per coordinate) and does not stop short on a flat
-    stretch as L-BFGS's relative-reduction test does (docs/calibration.md, "Stage 1 refined by Gauss-Newton")."""
+    stretch as L-BFGS's relative-reduction test does (docs/calibration.md, "Stage 1 refined by Gauss-Newton").
+    Where the Gauss-Newton model fails instead (a kept step's fall below the tolerance and far below its prediction,
+    `STALL_STEPS` damped steps in a row, or no lower loss along the damped steps short of the noise floor),
+    `fallback(theta, steps left)` (L-BFGS, say) goes on from there, and the convergence is both runs'."""
     start = time.perf_counter()
     low, high = (np.full(len(theta0), -np.inf), np.full(len(theta0), np.inf)) if bounds is None else (
         np.asarray(bounds, dtype=float).T
@@ -254,6 +264,7 @@ def gauss_newton(
           flush=True)
     history: list[float] = []
     mu, growth, converged, reason = 1.0e-3, 2.0, False, f"reached {max_steps} steps"
+    stalled, damped = False, 0
     if loss >= DIVERGED_LOSS:
         max_steps, reason = 0, "the loss is not finite at the start (the filter diverges)"
     elif max_steps == 0:
@@ -305,7 +316,15 @@ def gauss_newton(
                       f"(step x{length:g}, fall/predicted {agreement:.2f}, damping {mu:.1e})  "
                       f"{time.perf_counter() - start:.1f} s elapsed", file=stream, flush=True)
                 if before - loss <= tolerance * max(abs(before), abs(loss), 1.0):
-                    converged, reason = True, "a kept step lowered the loss by less than the tolerance (relative)"
+                    if agreement >= GOOD_AGREEMENT or fallback is None:
+                        converged, reason = True, "a kept step lowered the loss by less than the tolerance (relative)"
+                    else:
+                        stalled, reason = True, (f"a kept step lowered the loss by less than the tolerance, "
+                                                 f"{agreement:.2f} of its predicted fall")
+                    break
+                damped = damped + 1 if mu >= 1.0 else 0
+                if damped >= STALL_STEPS and fallback is not None:
+                    stalled, reason = True, f"{STALL_STEPS} kept steps in a row damped at or above the curvature"
                     break
                 continue
         mu, growth = mu * growth, growth * 2.0
@@ -313,12 +332,22 @@ def gauss_newton(
             recent = np.asarray([initial_loss, *history][-4:])
             change = np.max(np.abs(np.diff(recent))) / max(abs(recent[-1]), 1.0) if len(recent) > 1 else np.inf
             converged = change < 10.0 * tolerance
+            stalled = not converged and fallback is not None
             reason = (f"no lower loss along the damped steps; the last steps changed it by {change:.1e}"
                       + (": at its noise floor" if converged else ""))
             break
-    convergence = Convergence(
-        converged, reason, len(history), initial_loss, loss, time.perf_counter() - start, tuple(history)
-    )
-    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {len(history)} steps: {reason}",
+    steps = len(history)
+    if stalled and steps < max_steps:
+        print(f"[{label}] Gauss-Newton stalled after {steps} steps ({reason}): L-BFGS goes on from there",
+              file=stream, flush=True)
+        theta, after = fallback(theta, max_steps - steps)
+        convergence = Convergence(
+            after.converged, f"{after.reason}; L-BFGS's {after.steps} steps after {steps} of Gauss-Newton, which "
+            f"stalled ({reason})", steps + after.steps, initial_loss, after.final_loss, time.perf_counter() - start,
+            (*history, *after.history),
+        )
+        return theta, convergence
+    convergence = Convergence(converged, reason, steps, initial_loss, loss, time.perf_counter() - start, tuple(history))
+    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}",
           file=stream, flush=True)
     return theta, convergence
