@@ -402,6 +402,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
             return got.value, got.gradient[:free], 2.0 * (got.information[:free, :free] + np.diag(precision)) / n_valid
 
         def by_lbfgs(x: np.ndarray, steps: int) -> tuple[np.ndarray, Convergence]:
+            ahead.wait(RING_REFINEMENT_PROGRAM)  # with a spinning ring (else none is queued)
             return minimise(refined.objective, x, steps, tolerance, f"{label}, L-BFGS", stream, describe, bounds=bounds)
 
         return gauss_newton(terms, refined.loss, x, settings.calibration_steps, tolerance, label, stream, describe,
@@ -446,8 +447,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     if spinning:  # needed once the laws are screened (the refinement's trial points), before stage 2's
         refinement = (initial_theta, guess_log, law_model(settings.contact_laws[0]), noise, scales, chunks[0])
         ahead.compile_first(RING_RESTART_PROGRAM, stage1_value, *refinement, **chunk_weight)
-        if not by_gauss_newton:
-            ahead.compile_first(RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight)
+        # L-BFGS's: the refinement's own, or (after the others) where Gauss-Newton stalls
+        (ahead.compile if by_gauss_newton else ahead.compile_first)(
+            RING_REFINEMENT_PROGRAM, stage1_value_and_grad, *refinement, **chunk_weight
+        )
     ahead.compile_first(  # needed first: the support's start grid and the restarts after the first law's fit
         LOSS_PROGRAM, stage1_value, initial_theta, guess_log, law_model(screening(settings.contact_laws[0])),
         screen_noise, scales, screened_records(screen_batch), prior_weight=1.0, **static,
@@ -558,7 +561,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
 
     if spinning:
         ahead.wait(RING_RESTART_PROGRAM)
-        ahead.wait(RING_REFINEMENT_PROGRAM)
+        if not by_gauss_newton:
+            ahead.wait(RING_REFINEMENT_PROGRAM)
     if by_gauss_newton:
         ahead.wait(GAUSS_NEWTON_PROGRAM)
     refined = []
