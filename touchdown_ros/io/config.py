@@ -87,10 +87,10 @@ class TrainingSettings:
     held_out_every: int = 5  # stage 2: one block in this many is held out of the loss (< 2: none)
     held_out_block: float = 0.005  # s, length of those blocks
     patience: int = 10  # stage 2 stops when the held-out loss has not fallen for this many steps
-    regularisation_choice: str = "one_standard_error"  # stage 2's lambda (REGULARISATION_CHOICES)
+    regularisation_choice: str = "lowest"  # stage 2's lambda (REGULARISATION_CHOICES)
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
-    refinement: str = "gauss_newton"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
+    refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
     smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
