@@ -379,7 +379,7 @@ def test_gauss_newton_hands_a_stalled_fit_to_its_fallback():
     """Where the information understates the curvature and misses a coupling (a misfitted model's Fisher
     information), Levenberg-Marquardt creeps along the valley of a quadratic heavily damped and reaches its step
     cap short of the minimum; with L-BFGS as its fallback it hands over after STALL_STEPS such steps and the fit
-    ends at the minimum, the steps and history both runs'."""
+    ends at the minimum, the steps and history both runs'. A step far below its predicted fall is a stall too."""
     from touchdown_ros.workflows.optimise import STALL_STEPS, gauss_newton, minimise
 
     A, b = np.array([[1.0, 0.999], [0.999, 1.0]]), np.array([1.0, -0.5])
@@ -401,6 +401,24 @@ def test_gauss_newton_hands_a_stalled_fit_to_its_fallback():
     assert handed.converged and "stalled" in handed.reason and "L-BFGS goes on" in text.getvalue()
     np.testing.assert_allclose(theta, minimum, rtol=1e-6)
     assert STALL_STEPS < handed.steps == len(handed.history) < 100 and handed.final_loss == handed.history[-1]
+
+    # An information half the curvature: the first step overshoots the minimum to nearly the other side, its loss
+    # falling 1 % of the predicted fall and below the tolerance: alone that ends the fit as if converged; it is a
+    # stall, and the fallback goes on to the minimum.
+    def square(x):
+        return float(0.5 * x @ x)
+
+    def overshooting(x):
+        return square(x), x.copy(), np.eye(1) / 1.99
+
+    def by_lbfgs_1d(x, steps):
+        return minimise(lambda y: (square(y), y.copy()), x, steps, 0.05, "square, L-BFGS", io.StringIO())
+
+    far, fooled = gauss_newton(overshooting, square, np.array([1.0]), 100, 0.05, "square", io.StringIO())
+    assert fooled.steps == 1 and fooled.final_loss > 0.45 and far[0] < -0.9
+    near, handed = gauss_newton(overshooting, square, np.array([1.0]), 100, 0.05, "square", io.StringIO(),
+                                fallback=by_lbfgs_1d)
+    assert handed.converged and "of its predicted fall" in handed.reason and abs(near[0]) < 0.05
 
 
 def test_progress_reaches_stderr_as_it_is_when_written(monkeypatch):
