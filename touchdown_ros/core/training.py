@@ -185,18 +185,20 @@ def output_errors_and_held_out(
     return fitted, jnp.where(held_count > 0, totals[1] / held_count, jnp.nan), held_out
 
 
-def held_out_block_sums(errors: np.ndarray, batch: Batch) -> np.ndarray:
-    """The held-out errors (B, L) summed over each held-out block (`hold_out`: a run of held-out valid samples
-    of one record), record after record: the same blocks for every model of one batch, so two models'
-    sums pair up."""
+def held_out_blocks(batch: Batch) -> np.ndarray:
+    """(B, L) the held-out block (`hold_out`: a run of held-out valid samples of one record) each sample
+    belongs to, numbered record after record from 0; -1 where the sample is not held out."""
     held = np.asarray(batch.held_out) & np.asarray(batch.valid)
-    errors = np.asarray(errors)
-    sums = []
-    for record, mask in enumerate(held):
-        index = np.flatnonzero(mask)
-        for block in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if index.size else ():
-            sums.append(errors[record, block].sum())
-    return np.asarray(sums, dtype=float)
+    starts = held & ~np.pad(held, ((0, 0), (1, 0)))[:, :-1]
+    return np.where(held, np.cumsum(starts.ravel()).reshape(held.shape) - 1, -1)
+
+
+def held_out_block_sums(errors: np.ndarray, batch: Batch) -> np.ndarray:
+    """The held-out errors (B, L) summed over each held-out block (`held_out_blocks`): the same blocks for
+    every model of one batch, so two models' sums pair up."""
+    blocks = held_out_blocks(batch)
+    held = blocks >= 0
+    return np.bincount(blocks[held], weights=np.asarray(errors, dtype=float)[held], minlength=blocks.max() + 1)
 
 
 def within_one_standard_error(block_sums: list[np.ndarray], samples: int) -> tuple[int, np.ndarray, np.ndarray]:
