@@ -34,7 +34,7 @@ from touchdown_ros.core.diagnostics.breakdown import PHASES, contact_phase, defo
 from touchdown_ros.core.diagnostics.prediction import k_step_predictions
 from touchdown_ros.core.dynamics import measurement
 from touchdown_ros.core.effects import Effect, Effects
-from touchdown_ros.core.training import Batch, held_out_blocks, sample_errors
+from touchdown_ros.core.training import Batch, held_out_blocks, sample_errors, sums_per_block
 from touchdown_ros.core.types import FilterNoise, Model, Rig
 
 #: Label of the fit without any candidate, the reference of every difference.
@@ -117,10 +117,7 @@ def errors_over(measures: SampleMeasures, chosen: np.ndarray, blocks: np.ndarray
     rmse = np.sqrt(np.mean(k_error[k_rows] ** 2, axis=0)) if k_rows.any() else np.full(3, np.nan)
     squares = np.zeros(0)
     if blocks is not None:
-        in_block = k_rows & (blocks >= 0)
-        squares = np.bincount(
-            blocks[in_block], weights=np.sum(k_error[in_block] ** 2, axis=-1), minlength=int(blocks.max()) + 1
-        )
+        squares = sums_per_block(np.where(k_rows, np.sum(np.nan_to_num(k_error) ** 2, axis=-1), 0.0), blocks)
     return Errors(int(rows.sum()), mean_nll, rmse, squares)
 
 

@@ -193,12 +193,17 @@ def held_out_blocks(batch: Batch) -> np.ndarray:
     return np.where(held, np.cumsum(starts.ravel()).reshape(held.shape) - 1, -1)
 
 
+def sums_per_block(values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """`values` (B, L) summed over each held-out block of `blocks` (`held_out_blocks`), one sum per block
+    (0 for a block whose values are all 0)."""
+    held = blocks >= 0
+    return np.bincount(blocks[held], weights=np.asarray(values, dtype=float)[held], minlength=int(blocks.max()) + 1)
+
+
 def held_out_block_sums(errors: np.ndarray, batch: Batch) -> np.ndarray:
     """The held-out errors (B, L) summed over each held-out block (`held_out_blocks`): the same blocks for
     every model of one batch, so two models' sums pair up."""
-    blocks = held_out_blocks(batch)
-    held = blocks >= 0
-    return np.bincount(blocks[held], weights=np.asarray(errors, dtype=float)[held], minlength=blocks.max() + 1)
+    return sums_per_block(errors, held_out_blocks(batch))
 
 
 def within_one_standard_error(block_sums: list[np.ndarray], samples: int) -> tuple[int, np.ndarray, np.ndarray]:
