@@ -28,6 +28,7 @@ from touchdown_ros.core.calibration import (
     stage1_start,
     stage1_value_and_grad,
 )
+from touchdown_ros.core.diagnostics.breakdown import FREE_FLIGHT
 from touchdown_ros.core.orbit import candidate_starts
 from touchdown_ros.core.selection import (
     BASELINE,
@@ -224,7 +225,8 @@ def fit_candidates(
 ) -> Selection:
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
     factors and the model's own effects, from the calibrated values of `config` (the coefficient
-    file's or the YAML's), on the records' fitted samples; measure each on the held-out samples;
+    file's or the YAML's), on the records' fitted samples (a candidate's own parameters first alone, in
+    free flight unless it acts through the contact); measure each on the held-out samples;
     fit the baseline and the `settings.from_best` next candidates again from the best one's
     constants, keeping the lower loss; fit the `settings.per_bag` best (by the criterion) again bag
     by bag, their constants kept. The measures' and standard errors' programs compile in a background
@@ -257,12 +259,21 @@ def _fit_candidates(
         if effect is not None:
             # The candidate alone first, the model held: moved together from the start, the constants'
             # steep directions (a stiff contact's damping) set the first steps' length and the fit
-            # can stop, converged by the loss's change, before the candidate has moved.
+            # can stop, converged by the loss's change, before the candidate has moved. Fitted in free
+            # flight, where the contact constants do not act, unless it acts through the contact: the
+            # constants may have taken up the missing effect in contact (a z gain 5 % high read as a face
+            # six times too soft), and fitted on every sample the candidate stays in their basin.
             alone = Coordinates(start, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[name]))
-            x, _ = minimise(
-                problem.objective(alone, batch), alone.initial(), settings.steps, settings.tolerance,
-                f"fit {name} alone{label}", stream, bounds=alone.bounds(problem.scales),
-            )
+            x = alone.initial()
+            in_free_flight = phases is not None and not effect.contact and bool(np.any(phases == FREE_FLIGHT))
+            for where in ("in free flight", "") if in_free_flight else ("",):
+                x, _ = minimise(
+                    problem.objective(alone, free_flight(batch, phases) if where else batch), x, settings.steps,
+                    settings.tolerance, " ".join(filter(None, (f"fit {name} alone{label}", where))), stream,
+                    bounds=alone.bounds(problem.scales),
+                )
+                if where and not np.array_equal(x, alone.initial()):
+                    break  # moved by free flight alone: the joint fit goes on from there
             start = alone.theta(x)
         coordinates = Coordinates(start, problem.flags(fitted_effects))
         objective = problem.objective(coordinates, batch)
@@ -352,6 +363,12 @@ def _fit_candidates(
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
+
+
+def free_flight(batch: Batch, phases: np.ndarray) -> Batch:
+    """The batch with every sample outside free flight (`contact_phases` != `FREE_FLIGHT`) held out of the loss
+    (still filtered)."""
+    return batch._replace(held_out=jnp.asarray(np.asarray(batch.held_out) | (phases != FREE_FLIGHT)))
 
 
 def with_friction_coefficients(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
