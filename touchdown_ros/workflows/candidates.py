@@ -269,8 +269,10 @@ def _fit_candidates(
             # 3.689 against 3.152). The joint fit runs from each; the lower loss is kept.
             alone = Coordinates(start, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[name]))
             places = {"": batch}
-            if phases is not None and not effect.contact and bool(np.any(phases == FREE_FLIGHT)):
-                places[" in free flight"] = free_flight(batch, phases)
+            if phases is not None and not effect.contact:
+                in_flight = free_flight(batch, phases)
+                if np.any(np.asarray(in_flight.valid) & ~np.asarray(in_flight.held_out)):
+                    places[" in free flight"] = in_flight
             starts = []
             for where, samples in places.items():
                 x, _ = minimise(
