@@ -256,7 +256,7 @@ def _fit_candidates(
         chosen, effect = slots[name]
         fitted_effects = [*model.effects.names, *([effect.name] if effect else [])]
         batch = problem.gated(chosen)
-        starts = [start]
+        starts = [("", start)]  # (where its alone fit counted the loss, the joint fit's start)
         if effect is not None:
             # The candidate alone first, the model held: moved together from the start, the constants'
             # steep directions (a stiff contact's damping) set the first steps' length and the fit
@@ -279,17 +279,17 @@ def _fit_candidates(
                     problem.objective(alone, samples), alone.initial(), settings.steps, settings.tolerance,
                     f"fit {name} alone{label}{where}", stream, bounds=alone.bounds(problem.scales),
                 )
-                starts.append(alone.theta(x))
+                starts.append((where, alone.theta(x)))
         coordinates = Coordinates(start, problem.flags(fitted_effects))
         objective = problem.objective(coordinates, batch)
         x, convergence = min(
             (
                 minimise(
                     objective, coordinates.flat(begin), settings.steps, settings.tolerance,
-                    f"fit {name}{label}{' (from its alone fit in free flight)' if index else ''}", stream,
+                    f"fit {name}{label}{f' (from its alone fit{where})' if where else ''}", stream,
                     bounds=coordinates.bounds(problem.scales), restarts=restarts,
                 )
-                for index, begin in enumerate(starts)
+                for where, begin in starts
             ),
             key=lambda fit: fit[1].final_loss,
         )
