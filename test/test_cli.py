@@ -301,6 +301,28 @@ def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_besid
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 
 
+def test_diagnose_fits_every_candidate_again_from_the_rigs_friction_where_the_calibrated_one_is_above_a_bearings(
+    drop_bags,
+):
+    """Where the calibrated mu is above any bearing contact's, the constants have likely taken up the missing
+    effect, and the ranking made in their basin can put its candidate low (a hidden z gain was fourth): the
+    baseline and every candidate, not only the best by the criterion, are fitted again from the rig's friction."""
+    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
+    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
+
+    config = load_config(None, {"contact.mu": 1.0})
+    data = load_training_data(config, [drop_bags / "exp_01", drop_bags / "exp_11"])
+    data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
+    names = ["radial_load", "axial_load", "sensor_offset_x", "sensor_gain_z"]
+    stream = io.StringIO()
+    fit_candidates(config, config.model(), data, names,
+                   FitSettings(steps=3, per_bag=0, from_best=0, guess_friction=(0.1, 0.05)), stream)
+    log = stream.getvalue()
+    assert "every fit starts again from the rig's guess (mu 0.1, k_ZR 0.05)" in log, log
+    for name in ["none", *names]:
+        assert f"[fit {name}, from the guess's friction step 0]" in log, (name, log)
+
+
 def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
     coeffs = tmp_path / "c.yaml"
     code = main(

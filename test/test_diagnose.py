@@ -243,8 +243,8 @@ HIDDEN_LIBRARY_EFFECTS = {
         lambda truth: 5.0e5, lambda p: p["q"], 0.25, [0, 1], None,
     ),
     "z sensor gain": (
-        # stage 1 takes the gain up in contact (a face six times too soft, mu above any bearing's): found only
-        # from its fit in free flight (2026-12-02); sized by its deviation from 1
+        # stage 1 takes the gain up in contact (a face six times too soft, mu above any bearing's): found from
+        # the rig's friction, where every candidate starts again (2026-12-02); sized by its deviation from 1
         "lossy_contact", {"sensor_gain_z": 1.05}, "sensor_gain_z",
         lambda truth: 0.05, lambda p: p["gain"] - 1.0, 0.1, [2], 0.5,
     ),
@@ -286,7 +286,7 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
 def test_a_contact_angle_a_spinning_rings_friction_took_up_is_found_from_the_rigs_friction(tmp_path):
     """Against a spinning ring the bore's friction opposes axial sliding, so stage 1 can let a large mu act as
     the axial force a hidden contact angle makes in radial contact (mu 1.49 on these drops); train's note says
-    the friction is above any bearing contact's, and diagnose's best fits start again from the rig YAML's
+    the friction is above any bearing contact's, and diagnose's fits start again from the rig YAML's
     friction: the contact angle is named well ahead, sized within 10 % with a bearing's mu, and lowers the
     z error (2026-11-28: 242.6 ahead, +1.2 %, mu 0.22, z 0.80x; from the calibrated friction alone mu 1.44,
     49.2 ahead, z 0.87x)."""

@@ -103,22 +103,6 @@ def test_phases_from_states():
     np.testing.assert_array_equal(sel.contact_phases(states, rig), [0, 1, 2, 3])
 
 
-def test_the_free_flight_batch_counts_only_fitted_samples_in_free_flight():
-    """`candidates.free_flight`: the contact samples join the held-out ones (still filtered, not in the loss);
-    the held-out blocks stay held out."""
-    from touchdown_ros.core.training import hold_out, make_batch
-    from touchdown_ros.workflows.candidates import free_flight
-
-    batch = hold_out(make_batch([np.zeros((20, 3))], np.eye(7)), 5, 2)
-    phases = np.zeros((1, 20), dtype=int)
-    phases[0, 12:16] = [1, 2, 3, 1]
-    in_flight = free_flight(batch, phases)
-    counted = np.asarray(in_flight.valid) & ~np.asarray(in_flight.held_out)
-    # blocks of 5, every second held out: 0-4 and 10-14 fitted, of which 12-14 in contact
-    np.testing.assert_array_equal(np.flatnonzero(counted[0]), [0, 1, 2, 3, 4, 10, 11])
-    np.testing.assert_array_equal(np.asarray(in_flight.valid), np.asarray(batch.valid))
-
-
 def _errors(nll, k):
     held = {p: sel.Errors(10, nll, np.array([k, k, k])) for p in ("all", *sel.PHASES)}
     return sel.Errors(1000, nll, np.array([k, k, k])), held

@@ -11,7 +11,6 @@ from touchdown_ros.core.types import Rig
 
 AXES = ("x", "y", "z")
 PHASES = ("free flight", "axial only", "radial only", "both")
-FREE_FLIGHT = PHASES.index("free flight")
 
 
 def contact_phase(radial_contact: np.ndarray, axial_contact: np.ndarray) -> np.ndarray:
