@@ -75,8 +75,8 @@ class FitSettings:
     tolerance: float = 1.0e-5  # relative loss change that counts as converged
     per_bag: int = 2  # the best this many candidates are also fitted bag by bag
     from_best: int = 2  # this many runners-up (and the baseline) are fitted again from the best one's constants
-    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, the baseline and the best
-    # candidates are fitted again from it (None: never)
+    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, the baseline and every
+    # candidate are fitted again from it (None: never)
     guess_friction: tuple[float, float] | None = None
 
 
@@ -321,7 +321,7 @@ def _fit_candidates(
     # that high, the baseline and every candidate start once more with the rig YAML's friction, the other
     # constants as they fitted; the lower loss is kept. Every one: in the constants' basin the missing effect's
     # own candidate can rank low (a hidden z gain: 1.001 for 1.05 there, fourth by the criterion, behind the
-    # three that used to start again; from the rig's friction 1.051, 0.22 per sample lower).
+    # three that used to start again; from the rig's friction 1.050, 0.20 per sample lower).
     nominal = config.nominal
     if settings.guess_friction is not None and friction_above_any_bearings(nominal):
         print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
