@@ -254,8 +254,10 @@ HIDDEN_LIBRARY_EFFECTS = {
 @pytest.mark.parametrize("case", sorted(HIDDEN_LIBRARY_EFFECTS))
 def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_error(case, tmp_path):
     """Issue 16's gate for one hidden effect: named first with a negative criterion, sized within the tolerance, and
-    its held-out k-step error on its axes below the case's share of the baseline's, or else (the gate's "k-step or
-    contact-force error at most half") the contact force error against the truth at most half once it is trained."""
+    its held-out k-step error on its axes, net of the sensor noise (the model's own error, as bench/workbench_family.py
+    judges "halved"; docs/workbench.md, "The k-step error net of the sensor noise"), below the case's share of the
+    baseline's, or else (the gate's "k-step or contact-force error at most half") the contact force error against the
+    truth at most half once it is trained."""
     rig_name, simulator, effect, true_size, fitted_size, tolerance, axes, k_step_ratio = HIDDEN_LIBRARY_EFFECTS[case]
     bags, rig, truths = _family(tmp_path / "bags", rig_name, **simulator)
     calibrated = _calibrated(bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15")
@@ -270,8 +272,8 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
     truth = float(np.mean([true_size(t) for t in truths]))
     fitted = fitted_size({k: v["value"] for k, v in first["parameters"].items()})
     assert abs(fitted - truth) < tolerance * abs(truth), (fitted, truth)
-    before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_m"])[axes]
-    after = np.asarray(first["held_out_k_step_rmse_m"])[axes]
+    before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_net_m"])[axes]
+    after = np.asarray(first["held_out_k_step_rmse_net_m"])[axes]
     if np.linalg.norm(after) < (k_step_ratio or 1.0) * np.linalg.norm(before):
         return
     # the gate's other half: with the effect trained, the contact force error against the truth at most half
