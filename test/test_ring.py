@@ -12,6 +12,7 @@ from conftest import central_differences
 
 from touchdown_ros.core import dynamics
 from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian
+from touchdown_ros.core.effects import Effects, resolve
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, Coefficients, ContactLaw, Nominal, Rig
 from touchdown_ros.io.coefficients import CoefficientFileError, content_sha256, load_coefficients, save_coefficients
 from touchdown_ros.io.coefficients import TrainingRecord
@@ -28,10 +29,10 @@ CASES = {
 }
 
 
-def model_with(friction: str, slip_velocity: float = 0.02):
+def model_with(friction: str, slip_velocity: float = 0.02, effects: Effects = Effects()):
     kernel = CONFIG.kernel
     law = ContactLaw().with_friction(friction, slip_velocity)
-    return type(CONFIG.model())(RIG, NOMINAL, kernel, Coefficients.zeros(kernel), law=law)
+    return type(CONFIG.model())(RIG, NOMINAL, kernel, Coefficients.zeros(kernel), effects, law=law)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -85,9 +86,12 @@ def test_the_stuck_ring_is_stable_where_an_explicit_step_is_not():
     assert near < implicit <= RIG.speed
 
 
+@pytest.mark.parametrize("braked", [False, True], ids=["constant speed", "braked"])
 @pytest.mark.parametrize("case", CASES)
-def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case):
-    model, h = model_with("spinning_ring", 0.05), 1e-4
+def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case, braked):
+    """Also with the ring carried along with a braked rotor's falling speed (brake_decay)."""
+    effects = Effects((resolve("brake_decay"),), ({"rate": 0.8},)) if braked else Effects()
+    model, h = model_with("spinning_ring", 0.05, effects), 1e-4
     xi = np.array(CASES[case] + [RIG.speed - 0.3])  # nearly caught up: the slip, and its derivative, is small
     mean, Phi = step_with_jacobian(model, jnp.asarray(xi), h)
     np.testing.assert_allclose(np.asarray(mean), np.asarray(rk4_step(model, jnp.asarray(xi), h)), rtol=1e-12)
@@ -141,14 +145,15 @@ def stiff_quiet_drop():
     return simulated_drop_and_truth_config("stiff_quiet")
 
 
-def simulated_drop_and_truth_config(name: str):
-    """One drop of the family's rig `name` and the estimator's configuration with the truth's constants
-    transcribed (Hertz law, Hunt-Crossley damping, the support, mu for both friction coefficients)."""
+def simulated_drop_and_truth_config(name: str, brake: bool = False):
+    """One drop of the family's rig `name` (its rotor braked from the drop on if `brake`) and the
+    estimator's configuration with the truth's constants transcribed (Hertz law, Hunt-Crossley damping,
+    the support, mu for both friction coefficients)."""
     from touchdown_ros.sim.family import variant, variant_config
     from touchdown_ros.sim.params import simulator_parameters
     from touchdown_ros.sim.simulator import simulate_drop
 
-    v = variant(name)
+    v = dataclasses.replace(variant(name), brake=brake)
     config = variant_config(v)
     params = simulator_parameters(config)
     record = simulate_drop(config, v.condition(1), seed=1, params=params)
@@ -195,6 +200,43 @@ def test_along_the_true_path_the_spinning_ring_carries_the_truths_contact_force(
     paper = rmse(config.model()._replace(law=config.law.with_friction("paper")), states)
     ring_error = rmse(spinning, np.column_stack([states, ring]))
     assert ring_error < 0.5 * paper, (ring_error, paper)
+
+
+def test_a_braked_rotors_ring_keeps_the_truths_slip_and_rolling_force():
+    """A braked rotor (roller_noisy, the simulator's 400 rad/s^2 from the drop on) rolls on the bore, its
+    whirl held back by the friction against the unbalance's forward push. Along the simulator's true
+    path, with brake_decay at the truth's rate and the ring's speed from the implicit update, the
+    model's tangential force in the rolling phase is the truth's: the ring is carried along with the
+    rotor's falling speed within each step. Held at its updated speed instead, it lagged the rotor by
+    h d omega / dt, 4 mm/s of bore slip, and its friction pushed the rotor forward (2026-12-02:
+    -910 N for the truth's +540 N)."""
+    from touchdown_ros.sim.params import simulator_parameters
+
+    record, config = simulated_drop_and_truth_config("roller_noisy", brake=True)
+    h = config.sample_period
+    onset = int(round(record.drop_time / h))
+    clock = config.rig.speed * (record.t[onset:] - record.t[onset])  # theta: brake_decay's clock from the drop
+    states = np.column_stack([record.position[onset:], clock, record.velocity[onset:]])
+    rate = simulator_parameters(config).scalars["brake_deceleration"] / config.rig.speed
+    brake = Effects((resolve("brake_decay"),), ({"rate": rate},))
+    # rolling slips (1-5 mm/s) lie far below the Stribeck velocity: the truth's friction is its static one there
+    mu_s = simulator_parameters(config).balls["ceramic"]["friction_static"]
+    model = config.model(effects=brake)._replace(
+        law=config.law.with_friction("spinning_ring", 0.01), nominal=config.nominal._replace(mu=mu_s, k_ZR=mu_s)
+    )
+    # the implicit update, then the ring carried along with the rotor's falling speed, as `rk4_step` does
+    update = jax.jit(lambda s: ring_speed_after(model, s, h) + h * dynamics.spin_acceleration(model, s))
+    ring, w = [], 0.0
+    for s in states:
+        ring.append(w)
+        w = float(update(jnp.append(jnp.asarray(s), w)))
+    path = jnp.asarray(np.column_stack([states, ring]))
+    F_t = np.asarray(jax.jit(jax.vmap(lambda s: contact_forces(model, s).F_t))(path))
+    rolling = record.t[onset:] - record.t[onset] > 0.1  # on the bore throughout, the ring turning with the rotor
+    assert record.radial_contact[onset:][rolling].all()
+    truth = record.F_t[onset:][rolling].mean()
+    assert truth > 300.0  # the friction holds the whirl back
+    assert F_t[rolling].mean() == pytest.approx(truth, rel=0.1), (F_t[rolling].mean(), truth)
 
 
 def test_the_live_chunk_filter_equals_the_offline_filter_with_a_spinning_ring():

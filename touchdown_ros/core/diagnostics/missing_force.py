@@ -12,7 +12,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
-from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, unbalance_change
+from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, spin_acceleration, unbalance_change
 from touchdown_ros.core.ekf import (
     Belief,
     Transition,
@@ -38,14 +38,14 @@ class MissingForce(NamedTuple):
 def augmented_transition(model: Model, h: float) -> Transition:
     """RK4 step (h, s) of the state s = (xi, d) augmented with a force d (3,), N, on the rotor that
     stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd). A
-    spinning ring's speed is updated first and held, as in `rk4_step`."""
+    spinning ring's speed is updated first and carried along with the rotor's, as in `rk4_step`."""
     mass, size = model.rig.mass, model.law.state_size
     spinning = model.law.spins_ring
 
     def phi_aug(s: Array) -> Array:
         rate = phi(model, s[:size]).at[VELOCITY].add(s[size:] / mass)
         if spinning:
-            rate = rate.at[OMEGA_RING].set(0.0)
+            rate = rate.at[OMEGA_RING].set(spin_acceleration(model, s[:size]))
         return jnp.concatenate([rate, jnp.zeros(3, s.dtype)])
 
     def step(s: Array) -> Array:
