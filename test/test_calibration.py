@@ -21,6 +21,7 @@ from touchdown_ros.core.calibration import (
     strongest_correlations,
 )
 from touchdown_ros.core.diagnostics.regressors import force_equivalent
+from touchdown_ros.core import dynamics
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.types import ContactLaw, Nominal
 from touchdown_ros.io.config import load_config
@@ -551,6 +552,36 @@ def test_stage1_scales_move_each_effect_by_the_rotor_weight_where_it_acts():
     acts = np.ones((len(t), 3), bool)
     acts[:, 1] = False
     assert data_scales(model, states, acts).params[1] == {"rate": 0.1}
+
+
+def test_a_spinning_ring_follows_a_speed_effects_rotor_in_its_force_and_scale():
+    """A brake changes the rotor's speed, and a spinning ring follows it: the brake's force (its
+    regressor, and stage 1's scale) with the ring at the rotor's speed is the co-rotating ring's, the
+    ring's slip against the rotor kept. Held at the state's speed, the steep regularised friction read the
+    change of speed as R d omega of bore slip: a scale ~300 times too small (rate 0.0021 for 0.63 on
+    a braked roller_noisy, 2026-12-02), and stage 1 left the rate where it started."""
+    effects = library_effects(["brake_decay"])
+    ring = load_config(overrides={"contact.friction": "spinning_ring"}).model(effects=effects)
+    co_rotating = load_config(overrides={"contact.friction": "co_rotating_ring"}).model(effects=effects)
+    rig = ring.rig
+    t = np.arange(1, 1500, 10) * 1e-4
+    angle = 530.0 * t  # rolling on the bore, 10 um deep, whirling forward a little faster than the spin
+    radius = rig.radial_clearance + 1e-5
+    states = np.zeros((len(t), 8))
+    states[:, 0], states[:, 1], states[:, 3] = radius * np.cos(angle), radius * np.sin(angle), rig.speed * t
+    states[:, 4], states[:, 5] = -530.0 * states[:, 1], 530.0 * states[:, 0]
+    states[:, 7] = [float(dynamics.rotor_speed(ring, jnp.asarray(xi))[0]) for xi in states]  # the braked rotor's
+    effect, values = effects.effects[0], effects.params[0]
+    for xi in states:
+        spinning = np.asarray(force_equivalent(effect, jnp.asarray(xi), values, ring, None))
+        np.testing.assert_allclose(
+            spinning, np.asarray(force_equivalent(effect, jnp.asarray(xi[:7]), values, co_rotating, None)),
+            rtol=1e-9, atol=1e-6,
+        )
+    acts = np.ones((len(t), 1), bool)
+    ring_scale = data_scales(ring, states, acts).params[0]["rate"]
+    assert ring_scale == pytest.approx(data_scales(co_rotating, states[:, :7], acts).params[0]["rate"], rel=1e-6)
+    assert ring_scale > 0.05
 
 
 def test_centres_are_placed_over_the_contact_samples():

@@ -12,9 +12,9 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.diagnostics.missing_force import model_force
-from touchdown_ros.core.dynamics import phi
+from touchdown_ros.core.dynamics import phi, rotor_speed
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
-from touchdown_ros.core.types import STATE_SIZE, VELOCITY, Model
+from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, Model
 
 
 def coefficient_regressors(model: Model, states: Array) -> Array:
@@ -44,7 +44,10 @@ def motion(model: Model, xi: Array) -> Motion:
 def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion | None) -> Array:
     """(3,) N: a measurement effect as the force it stands for at xi; a force effect's force as it is;
     a speed effect's as the change of the model's force on the rotor it makes, m (phi with it - phi
-    without it) in the accelerations (the unbalance and, against a co-rotating ring, the friction).
+    without it) in the accelerations (the unbalance and, against a co-rotating ring, the friction). A
+    spinning ring follows the rotor's speed: each side keeps the state's slip of the ring against its
+    own rotor (held at the state's speed instead, the steep regularised friction read a change of
+    speed as a change of slip, R d omega, and a brake's force per unit rate as ~1e6 N: 2026-12-02).
 
     A measurement effect that changes the sensor output by D(xi) (m) makes a model without it
     follow the state xi + (D, 0, dD/dt), whose motion needs the extra force (first order in D)
@@ -58,7 +61,11 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
         return jnp.asarray(effect.function(xi, params, rig), xi.dtype)
     if effect.kind == SPEED:
         def acceleration(effects: Effects) -> Array:
-            return phi(model._replace(effects=effects), xi)[VELOCITY]
+            moved = model._replace(effects=effects)
+            state = xi
+            if model.law.spins_ring:  # static
+                state = xi.at[OMEGA_RING].add(rotor_speed(moved, xi)[0] - rotor_speed(model, xi)[0])
+            return phi(moved, state)[VELOCITY]
 
         return mass * (acceleration(Effects((effect,), (params,))) - acceleration(Effects()))
 
