@@ -10,6 +10,7 @@ from touchdown_ros.core.orbit import speed_effects_from_orbits, whirl_speeds
 from touchdown_ros.core.selection import with_candidates
 from touchdown_ros.io.config import load_config
 from touchdown_ros.workflows.calibrate import started_from_orbits
+from touchdown_ros.workflows.candidates import candidates_to_fit
 from touchdown_ros.workflows.training_data import TrainingData, load_training_data
 
 BRAKED = {"effects.active": ["brake_decay"], "effects.when.brake_decay": "brake"}
@@ -103,3 +104,12 @@ def test_a_steady_whirl_shows_no_speed_change_to_start_from():
     assert len(read.times) >= 20 and np.allclose(read.speeds, 1.01 * speed, rtol=0.01)
     _, moved = speed_effects_from_orbits(config.effects, config.rig, [record], [(1.0,)], h)
     assert moved == {}
+
+
+def test_diagnose_fits_a_speed_candidate_the_orbits_show_whatever_its_frols_rank():
+    """FROLS's best `count` are fitted, and a speed candidate the orbits show is added when it ranks lower;
+    one already among the best is not fitted twice, and one the orbits do not show is left to its rank."""
+    order = ["radial_load", "sensor_gain_z", "brake_decay", "axial_load"]
+    assert candidates_to_fit(order, 2, ["brake_decay"]) == ["radial_load", "sensor_gain_z", "brake_decay"]
+    assert candidates_to_fit(order, 3, ["brake_decay"]) == ["radial_load", "sensor_gain_z", "brake_decay"]
+    assert candidates_to_fit(order, 2, []) == ["radial_load", "sensor_gain_z"]

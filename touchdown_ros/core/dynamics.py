@@ -7,6 +7,7 @@ opposes sliding, so here F_zR = -mu sign(zdot) F_nR.
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -336,15 +337,11 @@ def held_rate(model: Model, xi: Array) -> Array:
     return phi(model, xi).at[OMEGA_RING].set(spin_acceleration(model, xi))
 
 
-def _ring_held(model: Model) -> Callable[[Array], Array]:
-    return lambda state: held_rate(model, state)
-
-
 def rk4_step(model: Model, xi: Array, h: float) -> Array:
     """f of eq. 15: one RK4 step of phi, of length h (s). With a spinning ring its speed is updated
     implicitly first (`ring_speed_after`), then carried along with the rotor's speed (`held_rate`)."""
     if model.law.spins_ring:
-        return rk4(_ring_held(model), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
+        return rk4(functools.partial(held_rate, model), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
     return rk4(lambda state: phi(model, state), xi, h)
 
 
@@ -356,10 +353,11 @@ def ring_update_jacobian(model: Model, held: Array, h: float) -> Array:
     dw / d xi = (e_ring - h da / d rotor + h / J dT / d rotor) / (1 - h / J dT / dw)."""
     J = model.rig.ring_inertia
     dT = jax.grad(lambda state: contact_forces(model, state).ring_torque)(held)  # (n,): rotor, then w
-    rotor = (dT / J).at[OMEGA_RING].set(0.0)
+    rotor = dT.at[OMEGA_RING].set(0.0)
+    numerator = jnp.zeros_like(held).at[OMEGA_RING].set(1.0) + h / J * rotor
     if model.effects and model.effects.acts_on(SPEED):  # static: a depends on the rotor's state only
-        rotor = rotor - jax.grad(lambda state: spin_acceleration(model, state))(held)
-    row = (jnp.zeros_like(held).at[OMEGA_RING].set(1.0) + h * rotor) / (1.0 - h / J * dT[OMEGA_RING])
+        numerator = numerator - h * jax.grad(lambda state: spin_acceleration(model, state))(held)
+    row = numerator / (1.0 - h / J * dT[OMEGA_RING])
     return jnp.eye(held.shape[0], dtype=held.dtype).at[OMEGA_RING].set(row)
 
 
@@ -399,7 +397,7 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
     """
     if model.law.spins_ring:
         held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
-        mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, _ring_held(model))
+        mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, functools.partial(held_rate, model))
         return mean, Phi @ ring_update_jacobian(model, held, h), *phi_and_jacobian(model, xi)
     return _rk4_with_jacobian(model, xi, h)
 

@@ -213,6 +213,15 @@ class _Problem:
         return self.measure(model, noise, self.config.sample_period, batch, self.k)
 
 
+def candidates_to_fit(frols_order: Sequence[str], count: int, shown_by_orbits: Sequence[str]) -> list[str]:
+    """The candidates `touchdown diagnose` fits: FROLS's best `count`, and every speed candidate the
+    orbits show (`core.orbit.candidate_starts`) wherever FROLS put it. FROLS linearises; a braked
+    rotor's unbalance lags by radians, and its linearised share of the missing force says little
+    (0.3 %, 11th of 16 on a braked roller_noisy whose brake the fit names 112 ahead, 2026-12-02)."""
+    names = list(frols_order[:count])
+    return names + [name for name in shown_by_orbits if name not in names]
+
+
 def fit_candidates(
     config: Config,
     model: Model,

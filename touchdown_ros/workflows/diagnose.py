@@ -32,7 +32,7 @@ from touchdown_ros.core.types import Model
 from touchdown_ros.io.bags import read_conditions
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import Config
-from touchdown_ros.workflows.candidates import FitSettings, fit_candidates, fitted_verdict
+from touchdown_ros.workflows.candidates import FitSettings, candidates_to_fit, fit_candidates, fitted_verdict
 from touchdown_ros.workflows.offline import BagEstimate, bag_effects, estimate_bag, estimator_for
 from touchdown_ros.workflows.progress import STDERR, progress
 from touchdown_ros.workflows.report.diagnosis import write_diagnosis
@@ -236,7 +236,8 @@ def diagnose(
         settings.max_lag,
     )
     # A speed effect's force is far from linear in its parameters (a braked rotor's unbalance lags by
-    # radians): it is ranked (linearised) and fitted from where its speed fits the bags' orbits, when they show it.
+    # radians): it is ranked (linearised) and fitted from where its speed fits the bags' orbits, when they show
+    # it, and then fitted whatever its rank (`candidates_to_fit`).
     library = [e for name, e in fx.LIBRARY.items() if name not in estimator.model.effects.names]
     starts = candidate_starts(library, config.rig, [b.result.estimate.measured for b in results], config.sample_period)
     for line in describe_starts(starts, {name: fx.LIBRARY[name].defaults() for name in starts}):
@@ -246,12 +247,15 @@ def diagnose(
     rows = ranking_rows(ranking, fx.LIBRARY, [b.path.name for b in results])
     verdict = frols_verdict(ranking, rows, settings.threshold)
     if settings.fitted:
+        names = candidates_to_fit([row["candidate"] for row in rows], settings.fitted, list(starts))
+        shown = names[settings.fitted:]
         print(
-            f"[diagnose {label}] fitting the {settings.fitted} best candidates (held-out blocks)",
+            f"[diagnose {label}] fitting the {settings.fitted} best candidates"
+            + (f" and {', '.join(shown)} (the orbits show its speed)" if shown else "")
+            + " (held-out blocks)",
             file=stream,
             flush=True,
         )
-        names = [row["candidate"] for row in rows[: settings.fitted]]
         selection = fit_candidates(
             config, estimator.model, load_training_data(config, bags), names,
             FitSettings(k=settings.k, guess_friction=(float(guess.mu), float(guess.k_ZR))), stream, starts,
