@@ -1,12 +1,23 @@
 """Run the whole test suite; 'no tests collected' (pytest exit 5) is a failure.
+
+The tests run on every core (pytest-xdist; the DDS tests of test_node.py together on one worker), and the
+workers share one on-disk cache of compiled XLA programs for this run: most of the suite's time is spent
+compiling the estimator's programs, and the same program compiled by one worker, or again after a test file
+let its programs go (conftest.py), is then loaded instead of compiled. The cache starts empty on every run.
 The 30 slowest tests are listed at the end, so that a CI log shows where its time went."""
+import os
 import sys
+import tempfile
 
 import pytest
 
 NO_TESTS_COLLECTED = 5
 
-code = pytest.main(["-q", "-ra", "--durations=30", "test", *sys.argv[1:]])
+with tempfile.TemporaryDirectory(prefix="touchdown-test-xla-") as compiled_programs:
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", compiled_programs)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+    workers = str(min(4, len(os.sched_getaffinity(0))))  # ~7 GB of compiled programs per worker at its peak
+    code = pytest.main(["-q", "-ra", "--durations=30", "-n", workers, "--dist", "loadgroup", "test", *sys.argv[1:]])
 if code == NO_TESTS_COLLECTED:
     print("error: pytest collected no tests", file=sys.stderr)
     code = 1

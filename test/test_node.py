@@ -47,6 +47,9 @@ NODE_START_TIMEOUT = 150.0  # s: imports + EKF compilation (cached by JAX after 
 #: Fewer compiled chunk lengths than the default: the same code path, less compilation in tests.
 FAST_NODE = ["-p", "node.chunk_sizes:=[16,64,256]", "-p", "node.diagnostics_period:=0.5"]
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+#: The DDS tests run one after another on one test worker (their domain ids come from its pid).
+pytestmark = pytest.mark.xdist_group("dds")
+
 INPUT = "touchdown_estimator: input"
 MODEL = "touchdown_estimator: model"
 CONTACT = "touchdown_estimator: contact"
