@@ -1,9 +1,10 @@
 """Run the whole test suite; 'no tests collected' (pytest exit 5) is a failure.
 
 The tests run on every core (pytest-xdist; the DDS tests of test_node.py together on one worker), and the
-workers share one on-disk cache of compiled XLA programs for this run: most of the suite's time is spent
-compiling the estimator's programs, and the same program compiled by one worker, or again after a test file
-let its programs go (conftest.py), is then loaded instead of compiled. The cache starts empty on every run.
+workers share one on-disk cache of compiled XLA programs for this run: XLA compilation took 995 s of
+test_calibration.py's 2777 s (2026-12-03), and the same program compiled by one worker, or again after a test
+file let its programs go (conftest.py), is then loaded instead of compiled (tracing is not saved). The cache
+starts empty on every run.
 The 30 slowest tests are listed at the end, so that a CI log shows where its time went."""
 import os
 import sys
