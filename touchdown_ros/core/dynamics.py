@@ -396,10 +396,15 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
     (about a third of `transition_jacobian`'s cost).
     """
     if model.law.spins_ring:
-        held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
-        mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, functools.partial(held_rate, model))
-        return mean, Phi @ ring_update_jacobian(model, held, h), *phi_and_jacobian(model, xi)
+        return *_ring_step_with_jacobian(model, xi, h), *phi_and_jacobian(model, xi)
     return _rk4_with_jacobian(model, xi, h)
+
+
+def _ring_step_with_jacobian(model: Model, xi: Array, h: float) -> tuple[Array, Array]:
+    """f(xi) and Phi_k with a spinning ring: its implicit speed update, then the held RK4 step."""
+    held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
+    mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, functools.partial(held_rate, model))
+    return mean, Phi @ ring_update_jacobian(model, held, h)
 
 
 def _rk4_with_jacobian(
@@ -421,6 +426,10 @@ def _rk4_with_jacobian(
 
 
 def step_with_jacobian(model: Model, xi: Array, h: float) -> tuple[Array, Array]:
-    """f(xi) (eq. 15) and Phi_k (eq. 16); see `step_with_jacobian_and_rate`."""
-    mean, Phi, _, _ = step_with_jacobian_and_rate(model, xi, h)
+    """f(xi) (eq. 15) and Phi_k (eq. 16); see `step_with_jacobian_and_rate`. Without its phi(xi) and d phi / d xi,
+    which a spinning ring's step evaluates apart: the filter's programs then trace about a sixth faster (stage 1's
+    value and gradient 17.0 s against 20.6 s, 2026-12-03), the same arithmetic."""
+    if model.law.spins_ring:
+        return _ring_step_with_jacobian(model, xi, h)
+    mean, Phi, _, _ = _rk4_with_jacobian(model, xi, h)
     return mean, Phi
