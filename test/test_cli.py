@@ -165,7 +165,9 @@ def test_the_command_keeps_compiled_programs_in_the_cache_folder_unless_switched
     TOUCHDOWN_XLA_CACHE=off keeps none."""
 
     def estimate(out: str, **env: str) -> None:
-        environment = {k: v for k, v in os.environ.items() if k != "TOUCHDOWN_XLA_CACHE"} | env
+        # without the test run's own cache folder (scripts/run_tests.py sets JAX's), as a user's shell would be
+        chosen = ("TOUCHDOWN_XLA_CACHE", "JAX_COMPILATION_CACHE_DIR")
+        environment = {k: v for k, v in os.environ.items() if k not in chosen} | env
         command = [sys.executable, "-m", "touchdown_ros.cli", "estimate", str(drop_bags / "exp_11"), "--no-figures"]
         subprocess.run([*command, "-o", str(tmp_path / out)], env=environment, capture_output=True, check=True)
 
@@ -254,7 +256,8 @@ def test_train_compiles_stage1s_loss_stage2_the_refinement_and_the_smoothing_onc
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 
 
-@pytest.mark.parametrize("refinement, duration", [("lbfgs", "0.042"), ("gauss_newton", "0.041")])
+# L-BFGS, the default, compiles the same four programs ahead: one refinement is run, as CI's 90 minutes allow
+@pytest.mark.parametrize("refinement, duration", [("gauss_newton", "0.041")])
 def test_train_with_a_spinning_ring_compiles_the_refinements_programs_ahead(drop_bags, tmp_path, refinement, duration):
     """With the ring's speed a state the laws are screened with the ring turning with the rotor and refined
     with its state: another loss alone (the restarts, Gauss-Newton's trial points), the standard errors'
