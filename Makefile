@@ -1,11 +1,11 @@
-# Front door. `make demo` runs the main job, `make test` runs every test.
+# Front door. `make demo` runs the main job, `make test` runs the tests (`make acceptance`: the issues' gates).
 # Both build their own environment (.venv) from the pinned requirements.lock.
 PYTHON ?= python3
 VENV   ?= .venv
 STAMP  := $(VENV)/.installed
 OUT    ?= results
 
-.PHONY: demo test bench env clean
+.PHONY: demo test acceptance bench env clean
 
 $(STAMP): requirements.lock setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python scripts/run_tests.py
+
+acceptance: $(STAMP)
+	$(VENV)/bin/python scripts/run_tests.py --acceptance
 
 bench: $(STAMP)
 	$(VENV)/bin/python bench/ekf_cost.py

@@ -27,6 +27,14 @@ from touchdown_ros.sim.simulator import simulate_drop
 MAPS_TO_LET_GO = 20_000
 
 
+def pytest_configure(config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "acceptance: an issue's gate on the simulated rig family, minutes each (`make acceptance`; `make test` leaves "
+        "them out to stay within CI's 90 minutes)",
+    )
+
+
 def _memory_maps() -> int:
     """Memory maps of this process (0 where /proc is not there)."""
     try:

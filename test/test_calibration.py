@@ -654,6 +654,7 @@ def trained_rig(request, tmp_path_factory):
     return v, rig, coeffs, summary
 
 
+@pytest.mark.acceptance
 def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     v, rig, coeffs, summary = trained_rig
     document = yaml.safe_load(coeffs.read_text())
@@ -707,34 +708,31 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     assert ("refined_loss" in rigid) == (v.name == "soft_bearing"), rigid
 
 
+@pytest.mark.acceptance
 def test_train_finds_an_axial_clearance_the_rig_yaml_has_wrong(tmp_path):
     """A rig whose face sits 10 um further than its YAML's axial clearance says (260 for 250 um, as a drawing's
     tolerance or a shaft's thermal growth would have it): with `training.clearance_tolerance` 25 um stage 1 fits r0
     and z0 beside f0 and puts them within a micrometre of the truth, and the held-out bag's axial peak comes out
-    right. Taken as exact (0, the default) the same bags give a peak 25-40 % off (docs/calibration.md)."""
+    right. Taken as exact (0, the default) the same bags gave a peak 25-40 % off (docs/calibration.md; not run
+    again here, the second training took half of this test's 11 minutes, 2026-12-03)."""
     told = variant("lossy_contact")
     truth = dataclasses.replace(told, overrides={**told.overrides, "rig.axial_clearance": 0.26e-3})
     bags = write_variant_bags(truth, tmp_path / "bags", n_drops=4, seed=0)
     rig = write_rig_yaml(told, tmp_path / "told", overwrite=True)
-    peaks = {}
-    for tolerance in ("25.0e-6", "0.0"):
-        coeffs, out = tmp_path / f"c_{tolerance}.yaml", tmp_path / f"est_{tolerance}"
-        trained = ["--config", str(rig), "-p", f"training.clearance_tolerance:={tolerance}"]
-        assert main(["train", *map(str, bags[:3]), *trained, "-o", str(coeffs), "--steps", "0"]) == 0
-        estimate = ["estimate", str(bags[3]), "--config", str(rig), "--coeffs", str(coeffs), "-o", str(out)]
-        assert main([*estimate, "--no-figures"]) == 0
-        summary = json.loads((out / "summary.json").read_text())
-        bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
-        peaks[tolerance] = bag["truth"]["peak_axial_force_error"]
-        contact = yaml.safe_load(coeffs.read_text())["contact"]
-        if tolerance == "0.0":
-            assert "axial_clearance" not in contact  # the YAML's, as given
-        else:
-            assert contact["axial_clearance"] == pytest.approx(0.26e-3, abs=1.0e-6)
-            assert contact["radial_clearance"] == pytest.approx(0.25e-3, abs=1.0e-6)
-    assert abs(peaks["25.0e-6"]) < PEAK_TOLERANCE < abs(peaks["0.0"]), peaks
+    coeffs, out = tmp_path / "c.yaml", tmp_path / "est"
+    trained = ["--config", str(rig), "-p", "training.clearance_tolerance:=25.0e-6"]
+    assert main(["train", *map(str, bags[:3]), *trained, "-o", str(coeffs), "--steps", "0"]) == 0
+    estimate = ["estimate", str(bags[3]), "--config", str(rig), "--coeffs", str(coeffs), "-o", str(out)]
+    assert main([*estimate, "--no-figures"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    bag = next(iter(summary["bags"].values())) if "bags" in summary else summary[0]
+    contact = yaml.safe_load(coeffs.read_text())["contact"]
+    assert contact["axial_clearance"] == pytest.approx(0.26e-3, abs=1.0e-6)
+    assert contact["radial_clearance"] == pytest.approx(0.25e-3, abs=1.0e-6)
+    assert abs(bag["truth"]["peak_axial_force_error"]) < PEAK_TOLERANCE, bag["truth"]
 
 
+@pytest.mark.acceptance
 def test_the_bags_choose_the_papers_friction_where_the_inner_ring_cannot_turn(tmp_path, capsys):
     """`training.friction_models: [paper, spinning_ring]` on a rig whose inner ring cannot turn (grippy_heavy
     with the ring's inertia 1000 kg m^2 for 3e-3: the truth's friction acts against the rotor's whole surface
@@ -763,6 +761,7 @@ def test_the_bags_choose_the_papers_friction_where_the_inner_ring_cannot_turn(tm
     assert len(document["filter"]["process_noise"]) == 7  # no ring speed in the state
 
 
+@pytest.mark.acceptance
 @pytest.mark.parametrize(
     "name, friction", [("lossy_contact", "spinning_ring"), ("soft_bearing", "paper")],
 )

@@ -327,10 +327,12 @@ def test_diagnose_fits_every_candidate_again_from_the_rigs_friction_where_the_ca
 
 
 def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
+    """The coefficient file `train` writes (with the paper's friction, whose programs compile in half the ring's
+    time) drives `estimate`, and a rig YAML it was not trained for is refused."""
     coeffs = tmp_path / "c.yaml"
     code = main(
         ["train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(coeffs), "--duration", "0.05",
-         "-p", "training.contact_laws:=[linear]"]
+         "-p", "training.contact_laws:=[linear]", "-p", "contact.friction:=paper"]
     )
     assert code == 0
     document = yaml.safe_load(coeffs.read_text())

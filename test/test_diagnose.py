@@ -74,6 +74,7 @@ def family_load_bags(tmp_path_factory):
     return _family(tmp_path_factory.mktemp("family_load"), "soft_bearing", axial_load=True)
 
 
+@pytest.mark.acceptance
 def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_10_percent(family_load_bags, tmp_path):
     """With the ring's friction (the rig YAML's) stage 1 takes up part of the hidden load in the friction (mu 0.88
     for about 0.2): the load's fit from there stays in that basin (1159 N) while the magnetic stiffness's
@@ -130,6 +131,7 @@ def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_
     assert "missing effect: axial_load" in text
 
 
+@pytest.mark.acceptance
 def test_stage1_moves_an_effect_started_far_from_its_value(family_load_bags, tmp_path):
     """Issue 16 item 4: `touchdown train` with the loader's effect switched on from a start 200x too
     small (10 N for about 2000 N) fits it within 10 %. Stage 1 scales an effect's parameters by the
@@ -203,6 +205,7 @@ def _lowers_the_error(case, bags, rig, calibrated, verdict, tmp_path):
     assert forces[1] <= 0.5 * forces[0], (before, after, forces)
 
 
+@pytest.mark.acceptance
 @pytest.mark.parametrize("case", sorted(set(HIDDEN_LIBRARY_EFFECTS) - {"contact angle"}))
 def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_error(case, tmp_path):
     """Issue 16's gate for one hidden effect: named first with a negative criterion, sized within the tolerance, and
@@ -210,6 +213,7 @@ def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_e
     _lowers_the_error(case, *_named_and_sized(case, tmp_path), tmp_path)
 
 
+@pytest.mark.acceptance
 def test_a_contact_angle_a_spinning_rings_friction_took_up_is_found_from_the_rigs_friction(tmp_path):
     """Issue 16's gate for a hidden contact angle (linear_spring, whose rig YAML has the spinning ring's friction).
     Against a spinning ring the bore's friction opposes axial sliding, so stage 1 can let a large mu act as
@@ -228,6 +232,7 @@ def test_a_contact_angle_a_spinning_rings_friction_took_up_is_found_from_the_rig
     _lowers_the_error("contact angle", bags, rig, calibrated, verdict, tmp_path)
 
 
+@pytest.mark.acceptance
 def test_a_hidden_magnetic_stiffness_is_named_sized_and_halves_the_force_error(tmp_path):
     """The whole gate for one more library effect: a residual negative magnetic stiffness of 1e7 N/m
     (radial and axial) on soft_bearing is named, its diagnose fit and `touchdown train` with it are
@@ -271,6 +276,7 @@ def family_thrust_calibrated(family_thrust_bags, tmp_path_factory):
     return _calibrated(bags, out, "--config", str(rig), "--duration", "0.15")
 
 
+@pytest.mark.acceptance
 def test_a_hidden_thrust_no_candidate_models_stays_unexplained_on_a_family_rig(
     family_thrust_bags, family_thrust_calibrated, tmp_path
 ):
@@ -289,6 +295,7 @@ def test_a_hidden_thrust_no_candidate_models_stays_unexplained_on_a_family_rig(
     assert z["rms_N"] > 200.0 and z["mean_by_phase_N"]["free flight"] > 200.0, z  # lifts the rotor: not a load
 
 
+@pytest.mark.acceptance
 def test_a_user_effect_by_dotted_path_fits_the_unmodelled_thrust_at_its_phase_and_the_axial_force_error_falls(
     family_thrust_bags, family_thrust_calibrated, tmp_path
 ):
