@@ -1,8 +1,9 @@
 """`touchdown diagnose` end to end on bags with a hidden effect (issues #5 and #16), on rigs of the family.
 
-(a) Library effects the paper's model lacks (an axial load, a sensor offset, a contact angle, a residual
-    magnetic stiffness): the tool must name each first by fitting it, size it within 10 % of the truth,
-    and adding it must halve the k-step or the contact-force error.
+(a) Library effects the paper's model lacks (an axial load, on the reference rig and a family rig, a sensor
+    offset, a contact angle, a seal's cross-coupling, a z sensor gain, a residual magnetic stiffness): the
+    tool must name each first by fitting it, size it within 10 % of the truth, and adding it must halve the
+    k-step or the contact-force error.
 (b) A once-per-revolution axial thrust that no library candidate models: the tool must call the missing
     force unexplained, and a user-written effect registered by dotted path in a rig YAML must be fitted
     to its size and make the error fall.
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from conftest import write_simulated_bag
 
 from touchdown_ros.cli import main
 from touchdown_ros.core.diagnostics.breakdown import contact_phase
@@ -25,9 +27,12 @@ from touchdown_ros.core.diagnostics.residuals import cross_correlation, whitenes
 from touchdown_ros.core.impacts import impact_numbers
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.io.config import load_config
+from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.family import variant, variant_config, write_variant_bags
 from touchdown_ros.sim.params import simulator_parameters, truth_constants
 from touchdown_ros.workflows.offline import force_rmse_against_truth
+
+DURATION = 0.06  # s simulated after the drop
 
 
 def _calibrated(bags, out, *extra):
@@ -44,6 +49,23 @@ def thrust(xi, p, rig):
 
 
 thrust.parameters = {"a": (100.0, "N", "cos(theta) amplitude"), "b": (100.0, "N", "sin(theta) amplitude")}
+
+
+def _simulate(out, numbers, **simulator):
+    """Bags exp_NN of Table 1 rows `numbers` (seed = number) and each one's truth constants."""
+    overrides = {"simulator.drop_duration": DURATION, **{f"simulator.{k}": v for k, v in simulator.items()}}
+    config = load_config(overrides=overrides)
+    params = simulator_parameters(config)
+    truths = {}
+    for number in numbers:
+        condition = CAMPAIGN[number - 1]
+        record = write_simulated_bag(out / f"exp_{number:02d}", number, seed=number, config=config, params=params)
+        # the simulator draws the experiment's constants first from this generator
+        rng = np.random.default_rng(np.random.SeedSequence([number, number]))
+        truths[f"exp_{number:02d}"] = truth_constants(
+            config, params, condition.ball, condition.brake, condition.axial_load, record.drop_time, rng
+        )
+    return [out / f"exp_{n:02d}" for n in numbers], truths
 
 
 def _family(out, name, axial_load=False, **simulator):
@@ -69,23 +91,82 @@ def _diagnosis(out):
 
 
 @pytest.fixture(scope="module")
+def load_bags(tmp_path_factory):
+    """Experiments 9 and 11: brake + the additional axial load (about 2000 N)."""
+    return _simulate(tmp_path_factory.mktemp("load"), (9, 11))
+
+
+@pytest.mark.acceptance
+def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, tmp_path):
+    bags, truths = load_bags
+    loads = {name: t.axial_load for name, t in truths.items()}
+    mean_load = float(np.mean(list(loads.values())))
+    assert all(1500.0 < f < 2500.0 for f in loads.values())
+
+    calibrated = _calibrated(bags, tmp_path / "calibrated.yaml")
+    coeffs = tmp_path / "with_load.yaml"
+    code = main(
+        ["train", *map(str, bags), "-o", str(coeffs), "-p", "effects.active:=[axial_load]", "--duration", "0.05"]
+    )
+    assert code == 0
+    fitted = load_coefficients(coeffs, load_config()).effects.values()["axial_load"]["force"]
+    assert abs(fitted - mean_load) < 0.1 * mean_load, fitted
+
+    out = tmp_path / "diagnosis"
+    assert (
+        main(["diagnose", *map(str, bags), "--coeffs", str(calibrated), "--compare", str(coeffs), "--out", str(out)])
+        == 0
+    )
+    document = _diagnosis(out)
+    before, after = document["models"]
+    assert (before["label"], after["label"]) == ("before", "after")
+    # each model's calibration notes (stage 1's, from its file) qualify its diagnosis, in the json and the report
+    for model, path in ((before, calibrated), (after, coeffs)):
+        said = [f"Calibration: {note}" for note in load_coefficients(path, load_config()).calibration_notes]
+        assert said and model["notes"][: len(said)] == said, (model["notes"], said)
+        assert all(f"  - {note}" in (out / "diagnosis.md").read_text() for note in model["notes"])
+
+    # before (the paper's constant model, calibrated): the load is what is missing, and how large it is
+    verdict = before["verdict"]
+    assert verdict["explained"], verdict["text"]
+    assert verdict["candidates"][0]["candidate"] == "axial_load", [c["candidate"] for c in verdict["candidates"]]
+    force = verdict["candidates"][0]["parameters"]["force"]
+    for name, value in force["per_bag"].items():
+        assert abs(value - loads[name]) < 0.1 * loads[name], (name, value, loads[name])
+    assert abs(force["value"] - mean_load) < 0.1 * mean_load
+
+    # after: the errors on the axis the load acts on fall at least by half; x, y do not get worse
+    ratio = document["comparison"]
+    assert ratio["k_step_rmse_per_axis"][2] <= 0.5, ratio
+    assert ratio["contact_force_rmse_per_axis"][2] <= 0.5, ratio
+    assert max(ratio["k_step_rmse_per_axis"][:2]) < 1.1 and max(ratio["contact_force_rmse_per_axis"][:2]) < 1.1, ratio
+    assert ratio["k_step_rmse_norm"] < 1.0 and ratio["contact_force_rmse_norm"] < 1.0, ratio
+    assert ratio["missing_force_rms"][2] < 0.5, ratio
+    for name in ("diagnosis.md", "errors.csv", "ranking.csv", "figures/missing_force.png", "figures/ranking.png"):
+        assert (out / name).stat().st_size > 200, name
+    assert "after / before" in (out / "diagnosis.md").read_text()
+
+
+@pytest.fixture(scope="module")
 def family_load_bags(tmp_path_factory):
     """The soft_bearing rig of the family (bearing 5x softer than the reference) with the loader on."""
     return _family(tmp_path_factory.mktemp("family_load"), "soft_bearing", axial_load=True)
 
 
 @pytest.mark.acceptance
-def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_10_percent(family_load_bags, tmp_path):
-    """With the ring's friction (the rig YAML's) stage 1 takes up part of the hidden load in the friction (mu 0.88
-    for about 0.2): the load's fit from there stays in that basin (1159 N) while the magnetic stiffness's
-    leaves it; fitted again from the best candidate's constants the load wins (2026-11-26). The paper's
-    friction, the easier case: `bench/workbench_family.py --cases "axial load" -p contact.friction:=paper`."""
+@pytest.mark.parametrize("friction", ["paper", "spinning_ring"])
+def test_a_hidden_load_on_a_family_rig_is_chosen_by_fitting_it_and_sized_within_10_percent(
+    family_load_bags, tmp_path, friction
+):
+    """With the ring's friction stage 1 takes up part of the hidden load in the friction (mu 0.88 for
+    about 0.2): the load's fit from there stays in that basin (1159 N) while the magnetic stiffness's
+    leaves it; fitted again from the best candidate's constants the load wins (2026-11-26)."""
     bags, rig, truths = family_load_bags
     loads = [t.axial_load for t in truths]
     assert all(1500.0 < f < 2500.0 for f in loads)
     calibrated = _calibrated(
         bags, tmp_path / "calibrated.yaml", "--config", str(rig), "--duration", "0.15",
-        "-p", "contact.friction:=spinning_ring",
+        "-p", f"contact.friction:={friction}",
     )
     out = tmp_path / "diagnosis"
     assert (
@@ -161,10 +242,21 @@ HIDDEN_LIBRARY_EFFECTS = {
         "linear_spring", {"contact_angle_tan": 0.2}, "contact_angle_coupling",
         lambda truth: 0.2 * truth.radial_stiffness, lambda p: p["tan_beta"] * p["k_radial"], 0.1, [2], 0.5,
     ),
+    "cross-coupled stiffness": (
+        "slippery", {"cross_coupled_stiffness": 5.0e5}, "cross_coupled_stiffness",
+        lambda truth: 5.0e5, lambda p: p["q"], 0.25, [0, 1], None,
+    ),
+    "z sensor gain": (
+        # stage 1 takes the gain up in contact (a face six times too soft, mu above any bearing's): found from
+        # the rig's friction, where every candidate starts again (2026-12-02); sized by its deviation from 1
+        "lossy_contact", {"sensor_gain_z": 1.05}, "sensor_gain_z",
+        lambda truth: 0.05, lambda p: p["gain"] - 1.0, 0.1, [2], 0.5,
+    ),
 }
-# Measured by bench/workbench_family.py, not here (each case is 4-7 minutes of the suite's 90): the cross-coupled
-# stiffness and the others of its table; the z sensor gain, not met yet (1.05 on lossy_contact named but sized 0.0442
-# for 0.05, 12 % off, the tolerance is 10 %; 53acb46, 2026-12-03).
+#: Cases the gate is not met on yet, with what was measured (strict: one that passes fails the run, to be moved back).
+NOT_MET_YET = {
+    "z sensor gain": "sized 0.0442 for 0.05 (12 % off, the tolerance is 10 %) at 53acb46, 2026-12-03",
+}
 
 
 def _named_and_sized(case, tmp_path):
@@ -206,7 +298,10 @@ def _lowers_the_error(case, bags, rig, calibrated, verdict, tmp_path):
 
 
 @pytest.mark.acceptance
-@pytest.mark.parametrize("case", sorted(set(HIDDEN_LIBRARY_EFFECTS) - {"contact angle"}))
+@pytest.mark.parametrize("case", [
+    pytest.param(case, marks=pytest.mark.xfail(reason=NOT_MET_YET[case], strict=True)) if case in NOT_MET_YET else case
+    for case in sorted(set(HIDDEN_LIBRARY_EFFECTS) - {"contact angle"})
+])
 def test_a_hidden_library_effect_on_a_family_rig_is_named_sized_and_lowers_the_error(case, tmp_path):
     """Issue 16's gate for one hidden effect: named first with a negative criterion, sized within the tolerance, and
     the error lowered (`_lowers_the_error`)."""
