@@ -32,15 +32,13 @@ with tempfile.TemporaryDirectory(prefix="touchdown-test-xla-") as compiled_progr
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
     workers = str(min(4, len(os.sched_getaffinity(0))))  # ~7 GB of compiled programs per worker at its peak
     common = ["-q", "-ra", "--durations=30", "-m", selected, *arguments]
-    codes = [
-        pytest.main([*common, "-n", workers, "--dist", "loadgroup", "--ignore", DDS_TESTS, "test"]),
-        pytest.main([*common, "-p", "no:xdist", DDS_TESTS]),
-    ]
-if NO_TESTS_COLLECTED in codes and selected != "acceptance":
+    parallel = ["-n", workers, "--dist", "loadgroup"]
+    if selected == "acceptance":  # no DDS test among them
+        parts = [[*common, *parallel, "test"]]
+    else:
+        parts = [[*common, *parallel, "--ignore", DDS_TESTS, "test"], [*common, "-p", "no:xdist", DDS_TESTS]]
+    codes = [int(pytest.main(part)) for part in parts]
+if NO_TESTS_COLLECTED in codes:
     print("error: pytest collected no tests", file=sys.stderr)
     sys.exit(1)
-codes = [code for code in codes if code != NO_TESTS_COLLECTED]  # test_node.py has no acceptance tests
-if not codes:
-    print("error: pytest collected no tests", file=sys.stderr)
-    sys.exit(1)
-sys.exit(max(int(code) for code in codes))
+sys.exit(max(codes))

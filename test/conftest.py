@@ -49,15 +49,15 @@ def _let_go_of_compiled_programs() -> None:
     filter's programs again took about a third of a hidden-effect test's time (151 s of 468 s, 2026-12-03), and the
     same program compiles again from the run's on-disk cache (scripts/run_tests.py). Private JAX caches (0.10): where
     one is missing, all caches are cleared as `jax.clear_caches` does."""
-    from jax._src import pjit
-    from jax._src.interpreters import pxla
-    from jax._src.lib import _jax
-
     try:
+        from jax._src import pjit
+        from jax._src.interpreters import pxla
+        from jax._src.lib import _jax
+
         compiled = (pjit._pjit_lower, pxla._cached_compilation)
         fast_paths = (pjit._cpp_pjit_cache_fun_only, pjit._cpp_pjit_cache_explicit_attributes)
         every_function = _jax.PjitFunctionCache
-    except AttributeError:
+    except (ImportError, AttributeError):
         jax.clear_caches()
     else:
         for cache in compiled:
