@@ -32,12 +32,15 @@ from conftest import library_effects
 GUESS = Nominal(k_R=5e8, c_R=3.5e4, mu=0.1, k_Z=5e8, c_Z=3.5e4, k_ZR=0.05)
 
 
-def consistency_config(**overrides):
+def consistency_config(screening_bags: int | None = None):
     """The reference rig with the paper's friction (7 states), for the checks that stage 1's programs agree with
     one another: what they check does not depend on the friction model, and with the spinning ring's state the
     same programs compile about twice as long (stage 1's value and gradient of two 300-sample records: 25 s against
-    53 s, 2026-12-03)."""
-    return load_config(overrides={"contact.friction": "paper", **overrides})
+    53 s, 2026-12-03). `screening_bags`: training.screening_bags, the records per chunk."""
+    overrides = {"contact.friction": "paper"}
+    if screening_bags is not None:
+        overrides["training.screening_bags"] = screening_bags
+    return load_config(overrides=overrides)
 
 
 def test_sensor_noise_from_levitated_samples_ignores_the_orbit():
@@ -73,7 +76,7 @@ def test_stage1_over_chunks_is_the_objective_over_all_records():
     from touchdown_ros.workflows.calibrate import filtered_records, stage1_batches
     from touchdown_ros.workflows.training_data import TrainingData, record_mesh, training_batch
 
-    config = consistency_config(**{"training.screening_bags": 2})
+    config = consistency_config(screening_bags=2)
     rng = np.random.default_rng(3)
     lengths = (180, 200, 170, 190, 160)  # 5 records in chunks of 2: the last one padded
     records = tuple(np.cumsum(2e-6 * rng.standard_normal((n, 3)), axis=0) - [0, 0, 1e-5] for n in lengths)
@@ -162,7 +165,6 @@ def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information():
     the records spread over the devices and in two chunks give the same (`stage1_gauss_newton_over`). With the
     likelihood loss, the default: the one-step loss's information is checked against finite differences above
     (its programs here took 4 more of the suite's worker-minutes, 2026-12-03)."""
-    kind = "nll"
     from touchdown_ros.core.calibration import (
         RIGID_LOG_SUPPORT, Coordinates, Stage1, log_nominal, stage1_flags, stage1_gauss_newton,
         stage1_gauss_newton_over, stage1_information, stage1_value_and_grad, stage1_value_and_grad_over,
@@ -181,7 +183,7 @@ def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information():
     p = len(coordinates.names)
     assert "axial_clearance" in coordinates.names
     model, noise, h = config.model(), config.noise, config.sample_period
-    static = dict(prior_width=1.5, h=h, kind=kind, clearance_width=2.5)
+    static = dict(prior_width=1.5, h=h, kind="nll", clearance_width=2.5)
     arguments = (guess, model, noise, config.effects)
     terms = stage1_gauss_newton(start, coordinates.directions(p + 2), *arguments, batch, **static)
     value, grad = stage1_value_and_grad(start, *arguments, batch, **static)
@@ -191,7 +193,7 @@ def test_stage1_gauss_newton_is_stage1s_value_gradient_and_information():
     np.testing.assert_allclose(np.asarray(terms.gradient)[:p], gradient, rtol=1e-8,
                                atol=1e-10 * np.max(np.abs(gradient)))
     information = np.asarray(stage1_information(start, coordinates.directions(), model, noise, config.effects, h,
-                                                batch, kind))
+                                                batch, static["kind"]))
     largest = np.max(np.abs(information))
     np.testing.assert_allclose(np.asarray(terms.information)[:p, :p], information, rtol=1e-10, atol=1e-12 * largest)
     assert not np.any(np.asarray(terms.gradient)[p:]) and not np.any(np.asarray(terms.information)[p:])
@@ -220,7 +222,7 @@ def test_stage1_over_chunks_runs_one_chunk_at_a_time(monkeypatch):
     from touchdown_ros.workflows.calibrate import stage1_batches
     from touchdown_ros.workflows.training_data import TrainingData, record_mesh
 
-    config = consistency_config(**{"training.screening_bags": 2})
+    config = consistency_config(screening_bags=2)
     rng = np.random.default_rng(4)
     records = tuple(np.cumsum(2e-6 * rng.standard_normal((3000, 3)), axis=0) - [0, 0, 1e-5] for _ in range(6))
     _, _, chunks = stage1_batches(config, TrainingData(tuple(f"bag_{i}" for i in range(6)), records), config.effects)
