@@ -319,19 +319,22 @@ def _fit_candidates(
         [p.name for p in data.paths], fits, problem.every, problem.block, np.asarray(config.noise.measurement)
     )
 
+    def put(fit: CandidateFit, theta: Stage1) -> None:
+        """`fit` (and its coordinates) in place of the selection's fit of the same name."""
+        selection.fits[[f.name for f in selection.fits].index(fit.name)] = fit
+        thetas[fit.name] = theta
+
     def keep_lower(first: CandidateFit, start: Stage1, label: str, restarts: int = 0) -> None:
         """Fit `first` again from `start`; keep that fit where its loss is the lower."""
         second, theta = fitted(first.name, start, f", from {label}", restarts)
-        index = [f.name for f in selection.fits].index(first.name)
-        current = selection.fits[index]
+        current = next(f for f in selection.fits if f.name == first.name)
         if second.convergence.final_loss < current.convergence.final_loss:
             print(
                 f"[fit {first.name}] kept the start from {label}: loss "
                 f"{second.convergence.final_loss:.7g} against {current.convergence.final_loss:.7g}",
                 file=stream, flush=True,
             )
-            selection.fits[index] = second
-            thetas[first.name] = theta
+            put(second, theta)
 
     # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
     # ring the bore's friction against axial sliding acts as an axial force in radial contact: a hidden
@@ -365,13 +368,11 @@ def _fit_candidates(
             continue
         again, theta = fitted(first.name, thetas[first.name], ", to convergence", alone=False,
                               steps=settings.converge_steps)
-        index = [f.name for f in selection.fits].index(first.name)
         before, after = first.convergence, again.convergence
-        selection.fits[index] = replace(again, convergence=replace(
+        put(replace(again, convergence=replace(
             after, steps=before.steps + after.steps, initial_loss=before.initial_loss,
             history=before.history + after.history, seconds=before.seconds + after.seconds,
-        ))
-        thetas[first.name] = theta
+        )), theta)
     for fit in ranked(selection)[: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
