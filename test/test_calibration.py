@@ -497,6 +497,30 @@ def test_friction_restart_leaves_a_low_friction_basin():
     assert friction_restart(loss_of, names, at_rig, loss_of(at_rig), io.StringIO()) is None
 
 
+def test_friction_restart_reaches_a_boundary_lubricated_contacts_basin():
+    """A rig sliding at 0.05 (slippery): the fit runs down to nearly no friction (mu 0.003, k_ZR 0.016), where a
+    shallow basin holds it, and the deeper one at the rig's friction is too narrow for 0.1 to lower the loss.
+    The grid's lowest pair, a boundary-lubricated contact's (`LOW_FRICTION`), reaches it."""
+    import io
+
+    from touchdown_ros.workflows.calibrate import LOW_FRICTION
+
+    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
+
+    def loss_of(x):
+        mu, k_ZR = np.exp(x[2]), np.exp(x[5])
+        trap = 0.04 * np.exp(-(mu ** 2 + k_ZR ** 2) / 0.001)
+        rig = 0.08 * np.exp(-((mu - 0.052) ** 2 + (k_ZR - 0.049) ** 2) / 0.0005)
+        return float(3.2 - trap - rig)
+
+    x = np.array([np.log(3e11), np.log(6e12), np.log(0.003), np.log(3e11), np.log(1.8e12), np.log(0.016)])
+    log = io.StringIO()
+    restarted = friction_restart(loss_of, names, x, loss_of(x), log)
+    assert restarted is not None, log.getvalue()
+    assert (np.exp(restarted[2]), np.exp(restarted[5])) == pytest.approx((LOW_FRICTION, LOW_FRICTION))
+    assert loss_of(restarted) < loss_of(x)
+
+
 def test_config_reads_the_axial_support():
     from touchdown_ros.io.config import ConfigError, load_config
 
