@@ -330,25 +330,6 @@ def test_diagnose_fits_every_candidate_from_the_rigs_friction_where_the_calibrat
         assert f"[fit {name} step 0]" not in log and f"[fit {name} alone step 0]" not in log, (name, log)
 
 
-def test_a_friction_out_of_a_bearings_range_is_above_any_or_below_a_spinning_rings():
-    """Diagnose starts its fits from the rig's friction where the calibrated one is above any bearing contact's, or,
-    against a spinning ring, below a dry contact's (a hidden cross-coupling took slippery's mu to 0.002 for 0.05);
-    the paper's friction (the inner ring at rest) reads hardly any on most rigs, which is no sign of a trap."""
-    from touchdown_ros.workflows.candidates import friction_out_of_range
-
-    def note(friction: str, mu: float, k_ZR: float) -> str:
-        return friction_out_of_range(
-            load_config(None, {"contact.friction": friction, "contact.mu": mu, "contact.k_ZR": k_ZR})
-        )
-
-    assert "above any bearing contact's (0.5)" in note("paper", 1.0, 0.05)
-    assert "above any bearing contact's (0.5)" in note("spinning_ring", 0.2, 0.9)
-    assert "below any dry or boundary-lubricated contact's (0.05)" in note("spinning_ring", 0.002, 0.012)
-    assert note("paper", 0.002, 0.012) == ""
-    assert note("spinning_ring", 0.002, 0.2) == ""  # the face's friction is a bearing's
-    assert note("spinning_ring", 0.2, 0.2) == ""
-
-
 def test_diagnose_takes_the_fits_the_step_cap_stopped_on_to_convergence(drop_bags):
     """A fit the step cap stopped is not at its optimum: the baseline and the best candidates go on from where they
     stopped until converged, so their sizes and the criterion are the optimum's (a hidden z gain came out 1.044 +-

@@ -49,9 +49,7 @@ from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
-from touchdown_ros.workflows.calibrate import (
-    HIGH_FRICTION, LOW_FRICTION, friction_above_any_bearings, largest_friction,
-)
+from touchdown_ros.workflows.calibrate import HIGH_FRICTION, friction_above_any_bearings
 from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
@@ -81,8 +79,8 @@ class FitSettings:
     # `converge_steps` more: their sizes and the criterion are the optimum's, not the cap's
     to_convergence: int = 3
     converge_steps: int = 200
-    # the rig YAML's (mu, k_ZR): where the calibrated friction is out of a bearing's range (`friction_out_of_range`),
-    # every candidate is fitted from it and the baseline from it too (None: never)
+    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, every candidate is fitted
+    # from it and the baseline from it too (None: never)
     guess_friction: tuple[float, float] | None = None
 
 
@@ -239,15 +237,14 @@ def fit_candidates(
 ) -> Selection:
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q factors and the
     model's own effects, from the calibrated values of `config` (the coefficient file's or the YAML's), on the
-    records' fitted samples; measure each on the held-out samples; where the calibrated friction is out of a
-    bearing's range (`friction_out_of_range`), start the candidates from `settings.guess_friction` instead and
-    the baseline from both, keeping its lower loss; fit the baseline and the `settings.from_best` next
-    candidates again from the best one's constants, keeping the lower loss; where the step cap stopped the
-    baseline or one of the `settings.to_convergence` best, go on from there to convergence; fit the
-    `settings.per_bag` best (by the criterion) again bag by bag, their constants kept. The measures' and
-    standard errors' programs compile in a background thread while the baseline's fit compiles the loss's
-    (`Ahead`). A speed candidate starts where `starts` puts it (default: where its speed fits the records'
-    orbits, `core.orbit.candidate_starts`)."""
+    records' fitted samples; measure each on the held-out samples; where the calibrated friction is above any
+    bearing's, start the candidates from `settings.guess_friction` instead and the baseline from both, keeping
+    its lower loss; fit the baseline and the `settings.from_best` next candidates again from the best one's
+    constants, keeping the lower loss; where the step cap stopped the baseline or one of the
+    `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best (by the
+    criterion) again bag by bag, their constants kept. The measures' and standard errors' programs compile in a
+    background thread while the baseline's fit compiles the loss's (`Ahead`). A speed candidate starts where
+    `starts` puts it (default: where its speed fits the records' orbits, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:
@@ -321,13 +318,14 @@ def _fit_candidates(
     # candidate can rank low (a hidden z gain: 1.001 for 1.05 there, fourth by the criterion; from the rig's
     # friction 1.050, 0.20 per sample lower). Only from the rig's friction: fitted from both (until 2026-12-03) the
     # candidates cost 1.7x the CPU time, and on the four such cases measured the right candidate's lower fit was the
-    # one from the rig's friction every time. A spinning ring's friction far below any dry contact's is the other
-    # side of it: a hidden cross-coupling took slippery's mu to 0.002 (for 0.05), and from the rig's friction its
-    # fit ended 0.09 per sample lower, the baseline's 0.04.
-    implausible = settings.guess_friction is not None and friction_out_of_range(config)
+    # one from the rig's friction every time.
+    implausible = settings.guess_friction is not None and friction_above_any_bearings(config.nominal)
     if implausible:
-        print(f"[fit] {implausible}: the candidates start from the rig's guess (mu {settings.guess_friction[0]:g}, "
-              f"k_ZR {settings.guess_friction[1]:g}), the baseline from both", file=stream, flush=True)
+        nominal = config.nominal
+        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
+              f"any bearing contact's ({HIGH_FRICTION:g}): the candidates start from the rig's guess "
+              f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g}), the baseline from both",
+              file=stream, flush=True)
     fits, thetas = [], {}
     for name in slots:  # the baseline first: its fit sets the candidates' scales (`_Problem.rescale`)
         if name != BASELINE and implausible:
@@ -399,18 +397,6 @@ def _fit_candidates(
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
-
-
-def friction_out_of_range(config: Config) -> str:
-    """Where the calibrated friction of `config` is above any bearing contact's (`HIGH_FRICTION`), or, against a
-    spinning ring, below any dry or boundary-lubricated contact's (`LOW_FRICTION`), a note saying so; else ""."""
-    nominal = config.nominal
-    said = f"the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is"
-    if friction_above_any_bearings(nominal):
-        return f"{said} above any bearing contact's ({HIGH_FRICTION:g})"
-    if config.law.spins_ring and largest_friction(nominal) < LOW_FRICTION:
-        return f"{said} below any dry or boundary-lubricated contact's ({LOW_FRICTION:g})"
-    return ""
 
 
 def with_friction_coefficients(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
