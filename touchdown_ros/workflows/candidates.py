@@ -79,8 +79,8 @@ class FitSettings:
     # `converge_steps` more: their sizes and the criterion are the optimum's, not the cap's
     to_convergence: int = 3
     converge_steps: int = 200
-    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, every candidate is fitted
-    # from it and the baseline from it too (None: never)
+    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, the baseline and every
+    # candidate are fitted again from it (None: never)
     guess_friction: tuple[float, float] | None = None
 
 
@@ -235,16 +235,17 @@ def fit_candidates(
     stream=STDERR,
     starts: dict[str, dict[str, float]] | None = None,
 ) -> Selection:
-    """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q factors and the
-    model's own effects, from the calibrated values of `config` (the coefficient file's or the YAML's), on the
-    records' fitted samples; measure each on the held-out samples; where the calibrated friction is above any
-    bearing's, start the candidates from `settings.guess_friction` instead and the baseline from both, keeping
-    its lower loss; fit the baseline and the `settings.from_best` next candidates again from the best one's
+    """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
+    factors and the model's own effects, from the calibrated values of `config` (the coefficient
+    file's or the YAML's), on the records' fitted samples; measure each on the held-out samples; where the
+    calibrated friction is above any bearing's, fit each again from `settings.guess_friction`, keeping the
+    lower loss; fit the baseline and the `settings.from_best` next candidates again from the best one's
     constants, keeping the lower loss; where the step cap stopped the baseline or one of the
-    `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best (by the
-    criterion) again bag by bag, their constants kept. The measures' and standard errors' programs compile in a
-    background thread while the baseline's fit compiles the loss's (`Ahead`). A speed candidate starts where
-    `starts` puts it (default: where its speed fits the records' orbits, `core.orbit.candidate_starts`)."""
+    `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best (by
+    the criterion) again bag by bag, their constants kept. The measures' and standard errors' programs
+    compile in a background thread while the baseline's fit compiles the loss's (`Ahead`). A speed
+    candidate starts where `starts` puts it (default: where its speed fits the records' orbits,
+    `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:
@@ -310,29 +311,9 @@ def _fit_candidates(
             convergence=convergence,
         ), theta
 
-    # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
-    # ring the bore's friction against axial sliding acts as an axial force in radial contact: a hidden
-    # contact angle gave mu 1.49, and its candidate's fit stayed there). So where the calibrated friction is
-    # that high, every candidate starts from the rig YAML's friction, the other constants as calibrated, and the
-    # baseline from both, the lower loss kept. Every candidate: in the constants' basin the missing effect's own
-    # candidate can rank low (a hidden z gain: 1.001 for 1.05 there, fourth by the criterion; from the rig's
-    # friction 1.050, 0.20 per sample lower). Only from the rig's friction: fitted from both (until 2026-12-03) the
-    # candidates cost 1.7x the CPU time, and on the four such cases measured the right candidate's lower fit was the
-    # one from the rig's friction every time.
-    implausible = settings.guess_friction is not None and friction_above_any_bearings(config.nominal)
-    if implausible:
-        nominal = config.nominal
-        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
-              f"any bearing contact's ({HIGH_FRICTION:g}): the candidates start from the rig's guess "
-              f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g}), the baseline from both",
-              file=stream, flush=True)
     fits, thetas = [], {}
     for name in slots:  # the baseline first: its fit sets the candidates' scales (`_Problem.rescale`)
-        if name != BASELINE and implausible:
-            start = with_friction_coefficients(problem.start, *settings.guess_friction)
-            fit, thetas[name] = fitted(name, start, ", from the guess's friction", FRICTION_START_RESTARTS)
-        else:
-            fit, thetas[name] = fitted(name, problem.start)
+        fit, thetas[name] = fitted(name, problem.start)
         fits.append(fit)
     selection = Selection(
         [p.name for p in data.paths], fits, problem.every, problem.block, np.asarray(config.noise.measurement)
@@ -355,10 +336,21 @@ def _fit_candidates(
             )
             put(second, theta)
 
-    if implausible:
-        baseline = selection.baseline
-        start = with_friction_coefficients(thetas[baseline.name], *settings.guess_friction)
-        keep_lower(baseline, start, "the guess's friction", restarts=FRICTION_START_RESTARTS)
+    # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
+    # ring the bore's friction against axial sliding acts as an axial force in radial contact: a hidden
+    # contact angle gave mu 1.49, and its candidate's fit stayed there). So where the calibrated friction is
+    # that high, the baseline and every candidate start once more with the rig YAML's friction, the other
+    # constants as they fitted; the lower loss is kept. Every one: in the constants' basin the missing effect's
+    # own candidate can rank low (a hidden z gain: 1.001 for 1.05 there, fourth by the criterion, behind the
+    # three that used to start again; from the rig's friction 1.050, 0.20 per sample lower).
+    nominal = config.nominal
+    if settings.guess_friction is not None and friction_above_any_bearings(nominal):
+        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
+              f"any bearing contact's ({HIGH_FRICTION:g}): every fit starts again from the rig's guess "
+              f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g})", file=stream, flush=True)
+        for first in [selection.baseline, *ranked(selection)]:
+            start = with_friction_coefficients(thetas[first.name], *settings.guess_friction)
+            keep_lower(first, start, "the guess's friction", restarts=FRICTION_START_RESTARTS)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
     # while another, started alike, leaves it. So the baseline and the runners-up start once more
