@@ -94,12 +94,16 @@ def write_simulated_bag(path: Path, experiment: int, seed: int, config: Config |
 
 
 def compilations(watched: set[str], run: Callable[[], Any]) -> tuple[Any, list[tuple[str, str]]]:
-    """run()'s result and the (program, thread) of each XLA compilation of a `watched` jit name during it."""
+    """run()'s result and the (program, thread) of each XLA compilation of a `watched` jit name by run(): in
+    the calling thread or a thread started during it. A compilation an earlier test left under way in its
+    background thread (`Ahead.close` lets it finish) is not run()'s, though it may end during it."""
     compiled: list[tuple[str, str]] = []
+    earlier = set(threading.enumerate()) - {threading.current_thread()}
 
     def listener(event: str, duration: float, fun_name: str = "", **_) -> None:
-        if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched:
-            compiled.append((fun_name, threading.current_thread().name))
+        thread = threading.current_thread()
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name in watched and thread not in earlier:
+            compiled.append((fun_name, thread.name))
 
     jax.monitoring.register_event_duration_secs_listener(listener)
     try:

@@ -456,6 +456,39 @@ def test_a_compilation_queued_first_ahead_is_compiled_before_those_queued_earlie
     assert [name for name, _ in compiled] == ["jit(sooner)", "jit(later)"]
 
 
+def test_a_compilation_left_under_way_by_an_earlier_test_is_not_counted_as_the_runs():
+    """`Ahead.close` lets a compilation under way finish in the background; one that an earlier test left
+    (its `train` ended early) and that ends during a later test's run is not that run's (a fresh clone's
+    CI, 2026-12-03: stage 2's program counted twice). One in a thread the run starts is."""
+    import threading
+
+    from touchdown_ros.workflows.ahead import THREAD_NAME
+
+    def leftover(x):
+        return x * 11.0
+
+    def own(x):
+        return x * 13.0
+
+    release = threading.Event()
+    earlier = threading.Thread(target=lambda: release.wait(20.0) and jax.jit(leftover).lower(np.zeros(3)).compile(),
+                               name=f"{THREAD_NAME}_0")
+    earlier.start()
+
+    def run() -> None:
+        release.set()
+        earlier.join()
+        started = threading.Thread(target=lambda: jax.jit(own).lower(np.zeros(3)).compile(), name=f"{THREAD_NAME}_0")
+        started.start()
+        started.join()
+
+    try:
+        _, compiled = compilations({"jit(leftover)", "jit(own)"}, run)
+    finally:
+        release.set()
+    assert compiled == [("jit(own)", f"{THREAD_NAME}_0")]
+
+
 def test_a_compilation_waited_for_before_its_turn_is_compiled_at_once_beside_the_one_under_way():
     """A program needed while the background thread still compiles another (with a spinning ring, stage
     1's standard errors while stage 2's compiles) is compiled at once beside it, not after it."""
