@@ -89,6 +89,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "peak_radial_error_percent": 100.0 * relative_peak_error(radial, true_radial),
         "force_rmse_percent_of_peak": 100.0 * force_rmse / peak,
         "displacement_rmse_over_noise": float(np.sqrt(np.nanmean((position - measured) ** 2)) / noise_rms),
+        "velocity_rmse_m_s": float(np.sqrt(np.nanmean((np.asarray(smoothed.state)[:, 4:7] - truth.velocity) ** 2))),
         "velocity_band_coverage_percent": _coverage(
             np.asarray(smoothed.state)[:, 4:7], np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
