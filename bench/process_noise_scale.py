@@ -13,13 +13,16 @@ the smoothed estimate's factor on Q by).
     .venv/bin/python bench/process_noise_scale.py --results DIR [--variants a,b] [--scales file,1,0.3,0.1]
 
 A factor multiplies the fitted Q (the file's `filter.smoothing_noise_scale` replaced, not compounded); `file`
-is that factor, the one `touchdown train` chose. Prints a markdown table: rig, Q factor, worst held-out peak
-F_z / F_r error (%), force RMSE over the peak (%), worst velocity RMSE (mm/s), the 95 % velocity and force
-bands' lowest coverage (%), NLL per sample and LOO-CV (um) on the training bags.
+is that factor, the one `touchdown train` chose. The force band's model term is measured again with each
+factor on the training bags, as `touchdown train` measures it with the factor it chooses. Prints a markdown
+table: rig, Q factor, worst held-out peak F_z / F_r error (%), force RMSE over the peak (%), worst velocity
+RMSE (mm/s), the 95 % velocity and force bands' lowest coverage (%), NLL per sample and LOO-CV (um) on the
+training bags.
 """
 from __future__ import annotations
 
 import argparse
+import io
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -33,6 +36,8 @@ from touchdown_ros.core.smoothing import leave_one_out_residuals
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.sim.family import VARIANTS, variant, variant_config
 from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+from touchdown_ros.workflows.train import model_force_error
+from touchdown_ros.workflows.training_data import load_training_data, training_batch
 
 
 def criteria(estimates: list, R: np.ndarray) -> tuple[float, float]:
@@ -68,9 +73,13 @@ def main(argv: list[str] | None = None) -> int:
         calibrated = loaded.config(config)
         bags = sorted(p for p in folder.glob(f"{name}_*") if p.is_dir() or p.suffix == ".mcap")
         train, test = bags[: args.train], bags[args.train:]
+        model = calibrated.model(loaded.coeffs, loaded.effects)
+        batch = training_batch(calibrated, load_training_data(calibrated, train), loaded.effects)
         for factor in (calibrated.smoothing_noise_scale if s == "file" else float(s) for s in args.scales.split(",")):
             scaled = replace(calibrated, smoothing_noise_scale=factor)  # the smoothed estimate's Q: fitted Q x factor
             noise = scaled.offline_noise()
+            model_error = model_force_error(model, noise, calibrated.sample_period, batch, io.StringIO())
+            scaled = replace(scaled, force_model_variance=model_error.variance)
             estimator = estimator_for(scaled, loaded.coeffs, loaded.effects)
             rows = [bag_figures(estimate_bag(scaled, bag, estimator), config.noise_rms) for bag in test]
             fits = [estimate_bag(scaled, bag, estimator).estimate for bag in train]
