@@ -99,6 +99,12 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     assert summary["truth"]["rmse_velocity_smoothed_mps"] == pytest.approx(
         rmse(estimate.smoothed.state[:, VELOCITY], truth.velocity).tolist(), rel=1e-12
     )
+    # the share of samples whose true velocity lies within the answer's 2-sigma band, per axis
+    sd = np.sqrt(np.diagonal(np.asarray(chosen.state_cov)[:, VELOCITY, VELOCITY], axis1=1, axis2=2))
+    inside = np.abs(np.asarray(chosen.state)[:, VELOCITY] - truth.velocity) <= 2.0 * sd
+    finite = np.isfinite(truth.velocity)
+    share = (inside & finite).sum(axis=0) / finite.sum(axis=0)
+    assert summary["truth"]["velocity_within_2_std"] == pytest.approx(share.tolist(), rel=1e-12)
     assert f"**{'RTS smoother' if answer == 'smoothed' else 'EKF'} ({answer})**" in (out / "summary.md").read_text()
     noise = "the fitted Q x 1 (filter.smoothing_noise_scale)" if answer == "smoothed" else "the fitted Q, as the live"
     assert f"Process noise: {noise}" in (out / "summary.md").read_text()

@@ -282,7 +282,12 @@ def summarise(estimate: Estimate, truth: Truth | None, config: Config, answer: s
                 np.where(measured, np.asarray(chosen.F_z), np.nan), truth.contact_force[:, 2]
             ),
             "peak_radial_force_error": relative_peak_error(np.where(measured, radial_force, np.nan), true_radial),
-            "contact_force_within_2_std": within_two_std(force, force_cov, truth.contact_force),
+            "contact_force_within_2_std": within_two_std(
+                force, force_cov, truth.contact_force, (force != 0.0) | (truth.contact_force != 0.0)
+            ),
+            "velocity_within_2_std": within_two_std(
+                np.asarray(chosen.state)[:, 4:7], np.asarray(chosen.state_cov)[:, 4:7, 4:7], truth.velocity
+            ),
         }
     return summary
 
@@ -299,13 +304,15 @@ def radial_force_std(force_xyz: np.ndarray, force_cov: np.ndarray) -> np.ndarray
     return np.sqrt(np.maximum(np.where(magnitude > 0.0, along, largest), 0.0))
 
 
-def within_two_std(force_xyz: np.ndarray, force_cov: np.ndarray, true_force: np.ndarray) -> list[float]:
-    """Per sensor axis: the fraction of the samples where the estimate or the truth has a contact
-    force on that axis at which the truth lies within 2 sigma of the estimate (95 % if sigma told the
-    whole error); NaN where there are no such samples."""
-    error = np.abs(force_xyz - true_force)
-    involved = ((force_xyz != 0.0) | (true_force != 0.0)) & np.isfinite(true_force)
-    inside = error <= 2.0 * force_std(force_cov)
+def within_two_std(
+    values: np.ndarray, cov: np.ndarray, truth: np.ndarray, counted: np.ndarray | bool = True
+) -> list[float]:
+    """Per sensor axis: the fraction of the samples `counted` ((N, 3) bool, e.g. where the estimate or the
+    truth has a contact force on that axis; all by default) with a truth at which it lies within 2 sigma of
+    the estimate (95 % if sigma told the whole error); NaN where there are no such samples. values and
+    truth (N, 3), cov (N, 3, 3)."""
+    involved = np.broadcast_to(counted, np.shape(truth)) & np.isfinite(truth)
+    inside = np.abs(values - truth) <= 2.0 * force_std(cov)
     return [float(np.mean(inside[involved[:, i], i])) if involved[:, i].any() else float("nan") for i in range(3)]
 
 

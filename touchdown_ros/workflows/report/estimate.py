@@ -101,8 +101,9 @@ def summary_table(
     )
     header = (
         "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
-        "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error | input (docs/input_policy.md) |\n"
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n"
+        "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error | 2-sigma band covers v / F, % "
+        "| input (docs/input_policy.md) |\n"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n"
     )
     rows = []
     for result in results:
@@ -113,12 +114,14 @@ def summary_table(
             velocity = f"{np.linalg.norm(truth['rmse_velocity_mps']) * 1e3:.2f}"
             force = f"{np.linalg.norm(truth['rmse_contact_force_N']):.0f}"
             peak = f"{truth['peak_axial_force_error'] * 100:+.1f} %"
+            bands = ("velocity_within_2_std", "contact_force_within_2_std")  # F: where either has a force
+            covers = " / ".join(f"{100 * np.nanmean(truth[k]):.0f}" for k in bands)
         else:
-            velocity = force = peak = "-"
+            velocity = force = peak = covers = "-"
         rows.append(
             f"| {result.path.name} | {result.answer} | {s['samples']} | {' | '.join(rms)} "
             f"| {s['peak_axial_force_N'] / 1e3:.2f} | {s['peak_axial_force_std_N'] / 1e3:.2f} "
-            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} | {input_text(s)} |"
+            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} | {covers} | {input_text(s)} |"
         )
     return intro + header + "\n".join(rows) + "\n"
 
