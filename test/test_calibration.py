@@ -704,13 +704,9 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     assert document["contact"]["k_Z"] != pytest.approx(5e8, rel=0.5)
     sigma = config.noise_rms
     np.testing.assert_allclose(calibration["sensor_noise_m"], sigma, rtol=0.15)  # R from the levitated samples
-    # the offline estimate's Q: the fitted one times the factor of the lowest leave-one-out smoothing error
+    # the offline estimate's Q: the fitted one, as the live filter's (training.smoothing_noise: likelihood)
     smoothing, scale = document["training"]["smoothing_noise"], document["filter"]["smoothing_noise_scale"]
-    assert 0.02 <= scale <= 1.0 and smoothing["scale"] == pytest.approx(scale, rel=1e-3)
-    assert smoothing["leave_one_out_error_um"]["chosen"] <= smoothing["leave_one_out_error_um"]["fitted_q"]
-    # a factor other than 1 only for a fall of the squared residual beyond its standard error
-    fall = smoothing["best_factor_fall_um2"]
-    assert scale == 1.0 or fall["mean"] > fall["standard_error"], smoothing
+    assert scale == 1.0 and smoothing["how"].startswith("likelihood"), smoothing
     # the force band's model error: measured in contact on the training bags, recorded with its sample count
     variance, error = document["filter"]["force_model_variance"], document["training"]["force_model_error"]
     assert len(variance) == 3 and min(variance) >= 0.0 and error["samples"] > 100, error
@@ -727,6 +723,8 @@ def test_train_identifies_an_unseen_rig_and_forces_follow(trained_rig):
     # an honest band: in contact the 2-sigma band covers 85-99 % of the held-out bag's samples (mean over
     # the axes); with the process noise read as a force it covered 99.9 % on the ring's soft_bearing
     assert 0.85 <= np.nanmean(truth["contact_force_within_2_std"]) <= 0.99, truth["contact_force_within_2_std"]
+    # and the velocity's over the whole drop (linear_spring's covered 83 % with the cross-validated Q factor)
+    assert 0.85 <= np.nanmean(truth["velocity_within_2_std"]) <= 0.99, truth["velocity_within_2_std"]
     if v.name == "soft_bearing":
         assert document["contact"]["support_preload"] == float("inf")  # its impacts (26 kN) stay below the knee
     # the yielding finalist's law is refined rigid too only where the support does not act (soft_bearing)

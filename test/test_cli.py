@@ -243,10 +243,11 @@ def test_bad_bag_is_refused_and_nothing_written(tmp_path, capsys):
 def test_train_compiles_stage1s_loss_stage2_the_refinement_and_the_smoothing_once_ahead(drop_bags, tmp_path):
     """Stage 1's loss alone (for the support's start grid, the restarts and the refinement's trial points),
     stage 2's program, stage 1's refinement's and standard errors' (`stage1_gauss_newton`), the smoothing
-    noise's and the model's force error's are compiled in the background thread from the rig YAML's shapes
-    while stage 1 compiles and runs, before it has calibrated the values they are later called with (other
-    constants, centres placed on the data): the calls find them and compile nothing again. With the paper's
-    friction (a spinning ring's programs: the test below)."""
+    noise's (`training.smoothing_noise: cross_validation`; the default takes the fitted Q) and the model's force
+    error's are compiled in the background thread from the rig YAML's shapes while stage 1 compiles and runs,
+    before it has calibrated the values they are later called with (other constants, centres placed on the data):
+    the calls find them and compile nothing again. With the paper's friction (a spinning ring's programs: the test
+    below)."""
     from touchdown_ros.workflows.ahead import THREAD_NAME
 
     watched = {"jit(stage1_value)", "jit(stage2_value_and_grad)", "jit(stage1_gauss_newton)",
@@ -255,7 +256,7 @@ def test_train_compiles_stage1s_loss_stage2_the_refinement_and_the_smoothing_onc
     code, compiled = compilations(watched, lambda: main([
         "train", str(drop_bags / "exp_01"), str(drop_bags / "exp_11"), "-o", str(tmp_path / "c.yaml"),
         "--duration", "0.043", "--steps", "0", "-p", "training.contact_laws:=[linear]",
-        "-p", "contact.friction:=paper",
+        "-p", "contact.friction:=paper", "-p", "training.smoothing_noise:=cross_validation",
     ]))
     assert code == 0
     assert sorted(name for name, _ in compiled) == sorted(watched), compiled

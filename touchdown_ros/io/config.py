@@ -59,8 +59,9 @@ REGULARISATION_CHOICES = ("lowest", "one_standard_error")
 #: training.axial_support: auto (try a yielding support, keep it if the data ask for it), rigid, yielding,
 #: given (contact.support_preload and support_span as the YAML says, held: a mount's data sheet).
 SUPPORT_CHOICES = ("auto", "rigid", "yielding", "given")
-#: training.smoothing_noise: the offline estimate's Q: cross_validation (a factor on the fitted Q, chosen
-#: by the smoother's leave-one-out error) or likelihood (the fitted Q as it is, as the live filter).
+#: training.smoothing_noise: the offline estimate's Q: likelihood (the fitted Q as it is, as the live filter) or
+#: cross_validation (a factor on the fitted Q, chosen by the smoother's leave-one-out error of the positions; it
+#: made the velocity worse and its band too narrow: docs/calibration.md, "The smoothed estimate with the fitted Q").
 SMOOTHING_NOISE_CHOICES = ("cross_validation", "likelihood")
 
 
@@ -91,7 +92,7 @@ class TrainingSettings:
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
-    smoothing_noise: str = "cross_validation"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
+    smoothing_noise: str = "likelihood"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
 
 
 @dataclass(frozen=True)
