@@ -13,7 +13,9 @@ held-out k-step prediction error of the baseline and with the named candidate.
 time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
 as large (a sensor gain's deviation from 1): how large an effect must be for the gate to hold.
 -p NAME:=VALUE overrides a rig parameter in every `touchdown` call, as the command's own -p does (e.g.
--p contact.friction:=co_rotating_ring).
+-p contact.friction:=co_rotating_ring). --simulator NAME:=VALUE changes the simulated truth of every chosen case
+(a key under the rig YAML's `simulator.`, e.g. --simulator ceramic.friction_static:=0.18: no Stribeck drop on the
+family's ceramic balls), to see what another physical effect does to a case; the case's name says so.
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on beside the effects the rounds added
@@ -345,6 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", type=float, default=None, help="each chosen hidden effect this many times as large")
     parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a rig parameter override passed to every touchdown call")
+    parser.add_argument("--simulator", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a change of every chosen case's simulated truth (a key under simulator.)")
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
@@ -354,6 +358,13 @@ def main(argv: list[str] | None = None) -> int:
             chosen = [scaled(c, args.scale) for c in chosen]
         except ValueError as error:
             parser.error(f"--scale: {error}")
+    if args.simulator:
+        try:
+            truth = {k.removeprefix("simulator."): v for k, v in parameter_overrides(args.simulator).items()}
+        except ValueError as error:
+            parser.error(f"--simulator: {error}")
+        said = ", ".join(f"{k} {v}" for k, v in truth.items())
+        chosen = [c._replace(name=f"{c.name} ({said})", simulator={**c.simulator, **truth}) for c in chosen]
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in chosen:
