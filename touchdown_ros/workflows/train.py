@@ -626,6 +626,8 @@ def _train(
         calibrated = replace(calibrated, smoothing_noise_scale=smoothing.scale)
     else:
         smoothing = SmoothingScale(1.0, None, None, "likelihood: the fitted Q as it is")
+        print("[smoothing noise] the offline estimate uses the fitted Q, as the live filter "
+              "(training.smoothing_noise: likelihood)", file=stream, flush=True)
     ahead.wait(MISSING_FORCE_PROGRAM)
     force_error = model_force_error(final, calibrated.offline_noise(), config.sample_period, batch, stream)
     calibrated = replace(calibrated, force_model_variance=force_error.variance)
