@@ -78,7 +78,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
     radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(true_force[:, 0], true_force[:, 1])
     peak = float(np.nanmax(np.linalg.norm(true_force, axis=1)))
     force_rmse = float(np.sqrt(np.nanmean(np.sum((force - true_force) ** 2, axis=1))))
-    position = np.asarray(smoothed.state)[:, :3]
+    position, velocity = np.asarray(smoothed.state)[:, :3], np.asarray(smoothed.state)[:, 4:7]
     measured = result.estimate.measured
     force_cov = getattr(smoothed, "force_cov", None)
     force_cov = None if force_cov is None else np.asarray(force_cov)
@@ -89,9 +89,9 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "peak_radial_error_percent": 100.0 * relative_peak_error(radial, true_radial),
         "force_rmse_percent_of_peak": 100.0 * force_rmse / peak,
         "displacement_rmse_over_noise": float(np.sqrt(np.nanmean((position - measured) ** 2)) / noise_rms),
-        "velocity_rmse_m_s": float(np.sqrt(np.nanmean((np.asarray(smoothed.state)[:, 4:7] - truth.velocity) ** 2))),
+        "velocity_rmse_m_s": float(np.sqrt(np.nanmean((velocity - truth.velocity) ** 2))),
         "velocity_band_coverage_percent": _coverage(
-            np.asarray(smoothed.state)[:, 4:7], np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
+            velocity, np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
         "force_band_coverage_percent": _coverage(force, force_cov, true_force),
         # out of contact the estimate and the truth are both 0 with a 0 band, which counts as covered

@@ -312,7 +312,7 @@ def within_two_std(
     the estimate (95 % if sigma told the whole error); NaN where there are no such samples. values and
     truth (N, 3), cov (N, 3, 3)."""
     involved = np.broadcast_to(counted, np.shape(truth)) & np.isfinite(truth)
-    inside = np.abs(values - truth) <= 2.0 * force_std(cov)
+    inside = np.abs(values - truth) <= 2.0 * force_std(cov)  # the square root of any covariance's diagonal
     return [float(np.mean(inside[involved[:, i], i])) if involved[:, i].any() else float("nan") for i in range(3)]
 
 
