@@ -53,6 +53,12 @@ def yielding_support(law: ContactLaw, force: Array) -> Array:
     return force - excess**2 / (law.support_span + excess)
 
 
+def stribeck_factor(law: ContactLaw, slip_squared: Array) -> Array:
+    """The friction coefficient over mu at a slip speed s (m/s, given as s^2): 1 + drop exp(-(s / v_s)^2),
+    the law's Stribeck drop and velocity; exactly 1 without a drop."""
+    return 1.0 + law.friction_drop * jnp.exp(-slip_squared / law.stribeck_velocity**2)
+
+
 def friction(
     law: ContactLaw, speed: Array, mu: Array, k_ZR: Array, F_nR: Array, F_zZ: Array,
     r: Array, rdot: Array, whirl: Array, zdot: Array,
@@ -73,8 +79,9 @@ def friction(
         raise ValueError("friction against a spinning ring needs its speed: use ring_friction")
     v = law.slip_velocity
     slip_t = whirl - speed * r
-    bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
-    face = k_ZR * F_zZ / jnp.sqrt(slip_t**2 + rdot**2 + v**2)
+    bore_slip, face_slip = slip_t**2 + zdot**2, slip_t**2 + rdot**2
+    bore = mu * stribeck_factor(law, bore_slip) * F_nR / jnp.sqrt(bore_slip + v**2)
+    face = k_ZR * stribeck_factor(law, face_slip) * F_zZ / jnp.sqrt(face_slip + v**2)
     return F_nR + face * rdot, (bore + face) * slip_t, F_zZ - bore * zdot
 
 
@@ -93,10 +100,12 @@ def ring_friction(
     """
     v = law.slip_velocity
     slip_t = whirl + rig.journal_radius * speed - (rig.journal_radius + r) * ring_speed
-    bore = mu * F_nR / jnp.sqrt(slip_t**2 + zdot**2 + v**2)
+    bore_slip = slip_t**2 + zdot**2
+    bore = mu * stribeck_factor(law, bore_slip) * F_nR / jnp.sqrt(bore_slip + v**2)
     lateral_t = whirl - speed * r
     spin = (speed - ring_speed) * rig.face_radius
-    face = k_ZR * F_zZ / jnp.sqrt(lateral_t**2 + rdot**2 + 4.0 * spin**2 + v**2)
+    lateral = lateral_t**2 + rdot**2
+    face = k_ZR * stribeck_factor(law, lateral + spin**2) * F_zZ / jnp.sqrt(lateral + 4.0 * spin**2 + v**2)
     torque = (rig.journal_radius + r) * bore * slip_t + face * 2.0 * spin * rig.face_radius
     return F_nR + face * rdot, bore * slip_t + face * lateral_t, F_zZ - bore * zdot, torque
 

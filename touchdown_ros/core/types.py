@@ -85,6 +85,10 @@ class ContactLaw(NamedTuple):
     support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = EXACT_SUPPORT
     friction_model: int = 0  # index into FRICTION_MODELS; 0: the paper's
     slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
+    #: Stribeck drop against a ring: the coefficient is mu (1 + friction_drop exp(-(s / stribeck_velocity)^2))
+    #: at slip speed s, mu_s / mu_k - 1 at rest; 0: Coulomb's (mu at every slip)
+    friction_drop: float = 0.0
+    stribeck_velocity: float = 0.05  # m/s, slip over which the drop fades
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":
@@ -137,6 +141,21 @@ class ContactLaw(NamedTuple):
         if not slip_velocity > 0.0:
             raise ValueError(f"slip_velocity must be > 0 m/s, got {slip_velocity!r}")
         return self._replace(friction_model=FRICTION_MODELS.index(friction), slip_velocity=slip_velocity)
+
+    def with_stribeck(self, drop: float, velocity: float) -> "ContactLaw":
+        """The same law whose ring friction falls from mu (1 + drop) at rest to mu over slips of about
+        `velocity` m/s (Stribeck's curve, `dynamics.stribeck_factor`); drop 0: Coulomb's."""
+        if not drop >= 0.0:
+            raise ValueError(f"friction_drop must be >= 0 (mu_s / mu_k - 1), got {drop!r}")
+        if not velocity > 0.0:
+            raise ValueError(f"stribeck_velocity must be > 0 m/s, got {velocity!r}")
+        return self._replace(friction_drop=drop, stribeck_velocity=velocity)
+
+    def with_friction_of(self, other: "ContactLaw") -> "ContactLaw":
+        """The same law with `other`'s friction: its model, slip velocity and Stribeck drop."""
+        return self.with_friction(other.friction, other.slip_velocity).with_stribeck(
+            other.friction_drop, other.stribeck_velocity
+        )
 
     @property
     def friction(self) -> str:

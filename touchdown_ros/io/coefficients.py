@@ -121,6 +121,8 @@ def save_coefficients(
             "support_log_covariance": [[float(v) for v in row] for row in config.law.support_log_covariance],
             "friction": config.law.friction,
             "slip_velocity": float(config.law.slip_velocity),  # m/s
+            "friction_drop": float(config.law.friction_drop),  # mu_s / mu_k - 1 of the ring friction; 0: none
+            "stribeck_velocity": float(config.law.stribeck_velocity),  # m/s
             "units": _contact_units(config),
             **{name: float(value) for name, value in config.nominal._asdict().items()},
             # m, r0 and z0 as stage 1 calibrated them (the rig YAML's rig.*_clearance moved); absent: the YAML's
@@ -338,6 +340,13 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         law = law.with_friction(str(contact.get("friction", "paper")), float(slip_velocity))
     except ValueError as error:
         raise CoefficientFileError(f"{path}: contact.friction / contact.slip_velocity: {error}") from None
+    drop, stribeck_velocity = contact.get("friction_drop", 0.0), contact.get("stribeck_velocity", 0.05)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (drop, stribeck_velocity)):
+        raise CoefficientFileError(f"{path}: contact.friction_drop and contact.stribeck_velocity must be numbers")
+    try:
+        law = law.with_stribeck(float(drop), float(stribeck_velocity))
+    except ValueError as error:
+        raise CoefficientFileError(f"{path}: contact.friction_drop / contact.stribeck_velocity: {error}") from None
     values = []
     for name in Nominal._fields:
         value = contact.get(name)

@@ -420,7 +420,9 @@ def parse_contact_law(text: str) -> ContactLaw:
 def _contact_law(read: ParameterReader) -> ContactLaw:
     """contact.law (linear | hertz | kelvin_voigt), contact.exponent (not linear; default 1.5), the axial
     support: contact.support_preload (N, default .inf: rigid) and contact.support_span (N), and the
-    friction: contact.friction (paper | co_rotating_ring | spinning_ring), contact.slip_velocity (m/s)."""
+    friction: contact.friction (paper | co_rotating_ring | spinning_ring), contact.slip_velocity (m/s), and the
+    Stribeck drop of a ring's friction: contact.friction_drop (mu_s / mu_k - 1, default 0: none) and
+    contact.stribeck_velocity (m/s)."""
     name = read.choice("contact.law", "linear", CONTACT_LAWS)
     exponent = read.number("contact.exponent", 1.0 if name == "linear" else 1.5, positive=True)
     rigid = read._get("contact.support_preload", math.inf) == math.inf  # .inf in YAML: a rigid support
@@ -429,8 +431,13 @@ def _contact_law(read: ParameterReader) -> ContactLaw:
     span = math.inf if rigid else read.number("contact.support_span", positive=True)
     friction = read.choice("contact.friction", "paper", FRICTION_MODELS)
     slip_velocity = read.number("contact.slip_velocity", 0.01, positive=True)
+    drop = read.number("contact.friction_drop", 0.0, non_negative=True)
+    stribeck_velocity = read.number("contact.stribeck_velocity", 0.05, positive=True)
     try:
-        return ContactLaw.of(name, exponent).with_support(preload, span).with_friction(friction, slip_velocity)
+        return (
+            ContactLaw.of(name, exponent).with_support(preload, span).with_friction(friction, slip_velocity)
+            .with_stribeck(drop, stribeck_velocity)
+        )
     except ValueError as error:
         raise ConfigError(f"{read.source}: contact.law / contact.exponent: {error}") from None
 
@@ -464,7 +471,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         )
     try:
         candidates = tuple(
-            dict.fromkeys(parse_contact_law(v).with_friction(law.friction, law.slip_velocity) for v in laws)
+            dict.fromkeys(parse_contact_law(v).with_friction_of(law) for v in laws)
         )
     except ValueError as error:
         raise ConfigError(f"{read.source}: training.contact_laws: {error}") from None
