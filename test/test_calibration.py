@@ -246,6 +246,41 @@ def test_stage1_over_chunks_runs_one_chunk_at_a_time(monkeypatch):
     assert isinstance(value, float) and all(isinstance(leaf, np.ndarray) for leaf in jax.tree.leaves(grad))
 
 
+def test_stage1_fits_the_stribeck_drop_on_a_log_scale_held_by_a_prior_around_the_guess():
+    """A Stribeck drop fitted in stage 1: two coordinates after the others (ln drop, ln v_s), the model's law
+    takes exp of them, and the prior holds them like f0 around the YAML's guess: out of contact, where the
+    data do not move them, J's gradient along them is the prior's alone."""
+    from touchdown_ros.core.calibration import (
+        RIGID_LOG_SUPPORT, STRIBECK_NAMES, Coordinates, log_nominal, log_stribeck_of, stage1_flags,
+        stage1_model_and_noise, stage1_start, stage1_value_and_grad,
+    )
+    from touchdown_ros.core.training import make_batch
+
+    config = load_config(overrides={"contact.friction": "co_rotating_ring", "contact.friction_drop": 0.3,
+                                    "contact.stribeck_velocity": 0.02})
+    with pytest.raises(ValueError, match="needs a guess > 0"):
+        log_stribeck_of(config.law.with_stribeck(0.0, 0.02))
+    centre = log_stribeck_of(config.law)
+    guess = jnp.asarray(log_nominal(config.nominal))
+    start = stage1_start(guess, config.effects, config.effects, jnp.asarray(RIGID_LOG_SUPPORT),
+                         jnp.asarray(centre + [0.5, -1.0]))
+    coordinates = Coordinates(start, stage1_flags(config.effects, True, fit_support=False, fit_stribeck=True))
+    assert coordinates.names[-2:] == list(STRIBECK_NAMES)
+    np.testing.assert_array_equal(coordinates.prior_sd(1.6)[-2:], [1.6, 1.6])
+    model, _ = stage1_model_and_noise(start, config.model(), config.noise, config.effects)
+    np.testing.assert_allclose([float(model.law.friction_drop), float(model.law.stribeck_velocity)],
+                               np.exp(centre + [0.5, -1.0]), rtol=1e-12)
+    rng = np.random.default_rng(3)
+    records = [np.cumsum(1e-6 * rng.standard_normal((120, 3)), axis=0)]  # levitated: no contact
+    batch = make_batch(records, np.asarray(config.noise.initial))
+    _, grad = stage1_value_and_grad(start, guess, config.model(), config.noise, config.effects, batch,
+                                    prior_width=1.6, h=config.sample_period, kind="nll")
+    expected = 2.0 * np.array([0.5, -1.0]) / 1.6**2 / float(np.sum(batch.valid))
+    np.testing.assert_allclose(coordinates.flat(grad)[-2:], expected, rtol=1e-9)
+    held = Coordinates(start, stage1_flags(config.effects, True, fit_support=False, fit_stribeck=False))
+    assert not set(STRIBECK_NAMES) & set(held.names)
+
+
 def test_hertz_force_and_guess_conversion():
     law = ContactLaw.of("hertz", 1.5)
     d, rate = 30e-6, 0.05

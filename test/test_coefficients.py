@@ -145,6 +145,25 @@ def test_file_carries_its_friction_and_refuses_a_bad_one(tmp_path):
             load_coefficients(path, CONFIG)
 
 
+def test_file_carries_the_stribeck_drop_and_refuses_a_bad_one(tmp_path):
+    law = ContactLaw.of("hertz", 1.5).with_friction("spinning_ring", 0.01).with_stribeck(0.35, 0.04)
+    path = saved_with_law(tmp_path / "c.yaml", law)
+    assert load_coefficients(path, CONFIG).config(CONFIG).law == law
+    document = yaml.safe_load(path.read_text())
+    del document["contact"]["friction_drop"], document["contact"]["stribeck_velocity"]  # a file of before: none
+    path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+    assert load_coefficients(path, CONFIG).config(CONFIG).law.friction_drop == 0.0
+    for drop, velocity, message in (
+        (-0.2, 0.04, r"contact\.friction_drop / contact\.stribeck_velocity: friction_drop must be >= 0"),
+        (0.2, 0.0, "stribeck_velocity must be > 0"),
+        ("high", 0.04, r"contact\.friction_drop and contact\.stribeck_velocity must be numbers"),
+    ):
+        document["contact"].update(friction_drop=drop, stribeck_velocity=velocity)
+        path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
+        with pytest.raises(CoefficientFileError, match=message):
+            load_coefficients(path, CONFIG)
+
+
 def test_file_carries_the_smoothing_noise_scale_and_the_offline_estimate_uses_it(tmp_path):
     """The offline estimate filters and smooths with Q times the file's factor; the live node's Q
     (`noise`) stays the fitted one; a file of before has none (1); a bad one is refused."""

@@ -156,3 +156,24 @@ def test_deep_shared_memory_profile_is_a_fast_dds_profile():
     assert participant.get("is_default_profile") == "true"
     used = [t.text for t in participant.iterfind(".//dds:userTransports/dds:transport_id", ns)]
     assert shm[0].findtext("dds:transport_id", namespaces=ns) in used
+
+
+def test_config_reads_the_stribeck_drop_and_refuses_to_fit_one_it_cannot():
+    """contact.friction_drop and stribeck_velocity reach the law and every candidate law; training.friction_drop:
+    fitted needs a ring's friction and a guess of the drop > 0, each refused by name."""
+    given = load_config(overrides={"contact.friction_drop": 0.3, "contact.stribeck_velocity": 0.03})
+    assert (given.law.friction_drop, given.law.stribeck_velocity) == (0.3, 0.03)
+    assert all((c.friction_drop, c.stribeck_velocity) == (0.3, 0.03) for c in given.training.contact_laws)
+    assert given.training.friction_drop == "given" and load_config().law.friction_drop == 0.0
+    fitted = load_config(overrides={"contact.friction_drop": 0.3, "training.friction_drop": "fitted"})
+    assert fitted.training.friction_drop == "fitted"
+    for overrides, message in (
+        ({"contact.friction_drop": -0.1}, "contact.friction_drop' must be >= 0"),
+        ({"contact.stribeck_velocity": 0.0}, "contact.stribeck_velocity' must be > 0"),
+        ({"training.friction_drop": "fitted"}, "contact.friction_drop .* must then be > 0"),
+        ({"training.friction_drop": "fitted", "contact.friction_drop": 0.3, "contact.friction": "paper"},
+         "fitted needs friction against a ring"),
+        ({"training.friction_drop": "guessed"}, "training.friction_drop"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            load_config(overrides=overrides)

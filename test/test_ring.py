@@ -86,12 +86,15 @@ def test_the_stuck_ring_is_stable_where_an_explicit_step_is_not():
     assert near < implicit <= RIG.speed
 
 
+@pytest.mark.parametrize("drop", [0.0, 0.4], ids=["Coulomb", "Stribeck"])
 @pytest.mark.parametrize("braked", [False, True], ids=["constant speed", "braked"])
 @pytest.mark.parametrize("case", CASES)
-def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case, braked):
-    """Also with the ring carried along with a braked rotor's falling speed (brake_decay)."""
+def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case, braked, drop):
+    """Also with the ring carried along with a braked rotor's falling speed (brake_decay), and with a
+    Stribeck drop of the friction over a slip comparable to the state's."""
     effects = Effects((resolve("brake_decay"),), ({"rate": 0.8},)) if braked else Effects()
     model, h = model_with("spinning_ring", 0.05, effects), 1e-4
+    model = model._replace(law=model.law.with_stribeck(drop, 0.05))
     xi = np.array(CASES[case] + [RIG.speed - 0.3])  # nearly caught up: the slip, and its derivative, is small
     mean, Phi = step_with_jacobian(model, jnp.asarray(xi), h)
     np.testing.assert_allclose(np.asarray(mean), np.asarray(rk4_step(model, jnp.asarray(xi), h)), rtol=1e-12)
@@ -99,6 +102,37 @@ def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case, br
     Phi_fd = central_differences(lambda s: rk4_step(model, jnp.asarray(s), h), xi, scales)
     np.testing.assert_allclose(np.asarray(Phi), Phi_fd, rtol=1e-5, atol=1e-7)
     assert np.any(np.abs(np.asarray(Phi)[4:7, OMEGA_RING]) > 1e-6)  # the ring's speed moves the rotor
+
+
+@pytest.mark.parametrize("friction", ["spinning_ring", "co_rotating_ring"])
+def test_a_stribeck_drop_raises_the_friction_at_a_small_slip_and_fades_at_a_large_one(friction):
+    """In bore contact alone the friction force is mu (1 + drop exp(-(s / v_s)^2)) F_n s / sqrt(s^2 + v^2)
+    at the slip s: (1 + drop) times Coulomb's where the rotor hardly slips on the ring, Coulomb's where it
+    slides fast; the normal force does not change."""
+    drop, v_s = 0.4, 0.05
+    xi = np.array(CASES["radial"])
+    r = np.hypot(xi[0], xi[1])
+    whirl = (xi[0] * xi[5] - xi[1] * xi[4]) / r
+    caught_up = (whirl + RIG.journal_radius * RIG.speed) / (RIG.journal_radius + r)  # the bore does not slip
+    for ring_speed in (caught_up, 0.0):
+        state = jnp.asarray(np.append(xi, ring_speed)) if friction == "spinning_ring" else jnp.asarray(xi)
+        coulomb = model_with(friction)
+        stribeck = coulomb._replace(law=coulomb.law.with_stribeck(drop, v_s))
+        without, with_drop = contact_forces(coulomb, state), contact_forces(stribeck, state)
+        if friction == "spinning_ring":
+            R = RIG.journal_radius
+            slip = whirl + R * RIG.speed - (R + r) * ring_speed
+        else:
+            slip = whirl - RIG.speed * r
+        factor = 1.0 + drop * np.exp(-(slip**2 + xi[6] ** 2) / v_s**2)
+        assert float(with_drop.F_t) == pytest.approx(factor * float(without.F_t), rel=1e-10)
+        assert float(with_drop.F_n) == pytest.approx(float(without.F_n), rel=1e-12)
+        if friction == "spinning_ring":  # at rest it slides at ~R omega: Coulomb's; caught up, near the static
+            assert factor == pytest.approx(1.0, abs=1e-9) if ring_speed == 0.0 else factor > 1.0 + 0.5 * drop
+    with pytest.raises(ValueError, match="friction_drop must be >= 0"):
+        ContactLaw().with_stribeck(-0.1, v_s)
+    with pytest.raises(ValueError, match="stribeck_velocity must be > 0"):
+        ContactLaw().with_stribeck(0.1, 0.0)
 
 
 def test_the_ring_state_comes_from_the_friction_model_in_configuration_and_coefficient_files(tmp_path):

@@ -123,6 +123,10 @@ def _trained(outcome, bags: int, out: Path) -> None:
     if calibration is not None:
         nominal, law = outcome.config.nominal, outcome.config.law
         friction = f", friction {law.friction}" if law.friction != "paper" or calibration.frictions else ""
+        if "friction_drop" in calibration.relative_sd:
+            sd = calibration.relative_sd
+            friction += (f" with a Stribeck drop {float(law.friction_drop):.3g} (+-{100 * sd['friction_drop']:.0f} %) "
+                         f"over {float(law.stribeck_velocity):.3g} m/s (+-{100 * sd['stribeck_velocity']:.0f} %)")
         print(
             f"stage 1 ({'converged' if calibration.convergence.converged else 'NOT converged'}, "
             f"{calibration.convergence.steps} steps): {law.label}{friction}, "

@@ -64,10 +64,16 @@ class Stage1(NamedTuple):
     log_support: Array | None = None  # (2,) ln of the axial support's preload and span (N); None: the law's;
     # +inf: rigid (so rigid and yielding candidates are one program: `RIGID_LOG_SUPPORT`)
     clearance: Array | None = None  # (2,) r0 and z0 minus the rig YAML's, in CLEARANCE_UNIT; None: the YAML's
+    log_stribeck: Array | None = None  # (2,) ln of the ring friction's Stribeck drop and velocity (1, m/s); None:
+    # the law's
 
 
 #: Names of the axial support's coordinates (`Stage1.log_support`).
 SUPPORT_NAMES = ("support_preload", "support_span")
+
+
+#: Names of the Stribeck coordinates (`Stage1.log_stribeck`).
+STRIBECK_NAMES = ("friction_drop", "stribeck_velocity")
 
 
 #: `Stage1.log_support` of a rigid support (preload and span infinite).
@@ -80,6 +86,23 @@ def support_law(law: ContactLaw, log_support: Array) -> ContactLaw:
     # exp of a finite stand-in where +inf, so the (unused) gradient there is 0, not inf * 0
     values = jnp.where(finite, jnp.exp(jnp.where(finite, log_support, 0.0)), jnp.inf)
     return law.with_support(values[0], values[1])
+
+
+def stribeck_law(law: ContactLaw, log_stribeck: Array) -> ContactLaw:
+    """`law` with the ring friction's Stribeck drop and velocity exp(log_stribeck) (1, m/s)."""
+    return law._replace(friction_drop=jnp.exp(log_stribeck[0]), stribeck_velocity=jnp.exp(log_stribeck[1]))
+
+
+def log_stribeck_of(law: ContactLaw) -> np.ndarray:
+    """ln of `law`'s Stribeck drop and velocity, where stage 1 starts them and centres their prior;
+    ValueError without a drop (no logarithm)."""
+    values = np.asarray([float(law.friction_drop), float(law.stribeck_velocity)])
+    if not np.all(values > 0.0):
+        raise ValueError(
+            "a Stribeck drop fitted in stage 1 needs a guess > 0: contact.friction_drop (mu_s / mu_k - 1) and "
+            "contact.stribeck_velocity (m/s)"
+        )
+    return np.log(values)
 
 
 def q_factors(log_q: Array, size: int = STATE_SIZE) -> Array:
@@ -150,11 +173,16 @@ def apply_scales(scaled: Effects, scales: Effects, inverse: bool = False) -> Eff
     )
 
 
-def stage1_start(log_f0: Array, effects: Effects, scales: Effects, log_support: Array | None = None) -> Stage1:
+def stage1_start(
+    log_f0: Array, effects: Effects, scales: Effects, log_support: Array | None = None,
+    log_stribeck: Array | None = None,
+) -> Stage1:
     """Stage 1's coordinates at the start: ln f0 as given, Q as the YAML's (factors 1), the effects'
     parameters over their scales, the support as given (None: the law's), the clearances the YAML's."""
     scaled = apply_scales(effects, scales, inverse=True)
-    return Stage1(jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support, jnp.zeros(len(CLEARANCE_NAMES)))
+    return Stage1(
+        jnp.asarray(log_f0), jnp.zeros(len(Q_NAMES)), scaled, log_support, jnp.zeros(len(CLEARANCE_NAMES)), log_stribeck
+    )
 
 
 def clearance_width(tolerance: float) -> float:
@@ -199,6 +227,7 @@ def stage1_model_and_noise(
 ) -> tuple[Model, FilterNoise]:
     """The model (constant parameters, alpha = 0) and filter noise at stage-1 coordinates theta."""
     law = base.law if theta.log_support is None else support_law(base.law, theta.log_support)
+    law = law if theta.log_stribeck is None else stribeck_law(law, theta.log_stribeck)
     model = base._replace(
         rig=with_clearances(base.rig, theta.clearance),
         law=law,
@@ -229,16 +258,26 @@ def stage1_objective(
     (1/C for each of C chunks of the records: `stage1_value_and_grad_over`)."""
     model, fitted_noise = stage1_model_and_noise(theta, base, noise, scales)
     data = output_error(model, fitted_noise, h, batch, mesh, kind)
-    prior = stage1_prior(theta, guess_log_f0, prior_width, clearance_width)
+    prior = stage1_prior(theta, guess_log_f0, prior_width, clearance_width, base.law)
     return data + prior_weight * prior / jnp.sum(batch.valid)
 
 
-def stage1_prior(theta: Stage1, guess_log_f0: Array, prior_width: float, clearance_width: float = 1.0) -> Array:
+def stage1_prior(
+    theta: Stage1,
+    guess_log_f0: Array,
+    prior_width: float,
+    clearance_width: float = 1.0,
+    guess: ContactLaw | None = None,
+) -> Array:
     """The prior's part of J before its division by the samples (module docstring): -2 ln of the prior
-    density at theta, without constants."""
+    density at theta, without constants. A Stribeck drop, where fitted, is held like f0 (prior_width) around
+    the `guess` law's."""
     prior = jnp.sum(((theta.log_f0 - guess_log_f0) / prior_width) ** 2) + jnp.sum((theta.log_q / Q_PRIOR_WIDTH) ** 2)
     if theta.clearance is not None:
         prior = prior + jnp.sum((theta.clearance / clearance_width) ** 2)
+    if theta.log_stribeck is not None and guess is not None:
+        centre = jnp.log(jnp.stack([guess.friction_drop, guess.stribeck_velocity]))
+        prior = prior + jnp.sum(((theta.log_stribeck - centre) / prior_width) ** 2)
     return prior
 
 
@@ -336,6 +375,7 @@ class Coordinates:
             ),
             None if start.log_support is None else list(SUPPORT_NAMES),
             None if start.clearance is None else list(CLEARANCE_NAMES),
+            None if start.log_stribeck is None else list(STRIBECK_NAMES),
         )
         self.names = [n for n, f in zip(jax.tree_util.tree_leaves(labels), self.free) if f]
 
@@ -385,9 +425,10 @@ class Coordinates:
         return [b for b, free in zip(scaled_bounds(self._unravel(self.start), scales), self.free) if free]
 
     def prior_sd(self, prior_width: float, clearance_width: float = 1.0) -> np.ndarray:
-        """Prior sd of each free coordinate: prior_width for ln f0, Q_PRIOR_WIDTH for ln q, clearance_width for
-        the clearances, none (inf) for effects and the support."""
-        widths = {**dict.fromkeys(PARAMETER_NAMES, prior_width), **dict.fromkeys(Q_NAMES, Q_PRIOR_WIDTH),
+        """Prior sd of each free coordinate: prior_width for ln f0 and the Stribeck drop, Q_PRIOR_WIDTH for ln q,
+        clearance_width for the clearances, none (inf) for effects and the support."""
+        widths = {**dict.fromkeys(PARAMETER_NAMES + STRIBECK_NAMES, prior_width),
+                  **dict.fromkeys(Q_NAMES, Q_PRIOR_WIDTH),
                   **dict.fromkeys(CLEARANCE_NAMES, clearance_width)}
         return np.asarray([widths.get(n, np.inf) for n in self.names])
 
@@ -399,11 +440,12 @@ def stage1_flags(
     fitted_effects: Sequence[str] | None = None,
     fit_support: bool | None = None,
     fit_clearances: bool = False,
+    fit_stribeck: bool | None = None,
 ) -> Stage1:
     """Which stage-1 coordinates are free: ln f0 (fit_f0), ln q (fit_q), the parameters of the
     effects named in fitted_effects (default: all), never the gates, the axial support
-    (fit_support True: free, False: held at its start's `log_support`, None: the start has none)
-    and the clearances (fit_clearances)."""
+    (fit_support True: free, False: held at its start's `log_support`, None: the start has none),
+    the clearances (fit_clearances) and the Stribeck drop (fit_stribeck, as fit_support)."""
     chosen = effects.names if fitted_effects is None else tuple(fitted_effects)
     return Stage1(
         jnp.full(len(PARAMETER_NAMES), float(fit_f0)),
@@ -415,6 +457,7 @@ def stage1_flags(
         ),
         None if fit_support is None else jnp.full(len(SUPPORT_NAMES), float(fit_support)),
         jnp.full(len(CLEARANCE_NAMES), float(fit_clearances)),
+        None if fit_stribeck is None else jnp.full(len(STRIBECK_NAMES), float(fit_stribeck)),
     )
 
 
@@ -581,10 +624,10 @@ def stage1_gauss_newton(
         total, d_total, information = jax.shard_map(
             share, mesh=mesh, in_specs=(P(),) * 5 + (P(RECORDS),), out_specs=P(), check_vma=False
         )(*replicated, batch)
-    prior, d_prior = jax.vmap(
-        lambda d: jax.jvp(lambda t: stage1_prior(t, guess_log_f0, prior_width, clearance_width), (theta,), (d,)),
-        out_axes=(None, 0),
-    )(directions)
+    def prior_of(t: Stage1) -> Array:
+        return stage1_prior(t, guess_log_f0, prior_width, clearance_width, base.law)
+
+    prior, d_prior = jax.vmap(lambda d: jax.jvp(prior_of, (theta,), (d,)), out_axes=(None, 0))(directions)
     fitted = jnp.sum(batch.valid & ~batch.held_out)
     weight = prior_weight / jnp.sum(batch.valid)
     return GaussNewtonTerms(total / fitted + weight * prior, d_total / fitted + weight * d_prior, information)

@@ -88,7 +88,7 @@ class ContactLaw(NamedTuple):
     #: Stribeck drop against a ring: the coefficient is mu (1 + friction_drop exp(-(s / stribeck_velocity)^2))
     #: at slip speed s, mu_s / mu_k - 1 at rest; 0: Coulomb's (mu at every slip)
     friction_drop: float = 0.0
-    stribeck_velocity: float = 0.05  # m/s, slip over which the drop fades
+    stribeck_velocity: float = 0.02  # m/s, slip over which the drop fades
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":

@@ -340,7 +340,7 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         law = law.with_friction(str(contact.get("friction", "paper")), float(slip_velocity))
     except ValueError as error:
         raise CoefficientFileError(f"{path}: contact.friction / contact.slip_velocity: {error}") from None
-    drop, stribeck_velocity = contact.get("friction_drop", 0.0), contact.get("stribeck_velocity", 0.05)
+    drop, stribeck_velocity = contact.get("friction_drop", 0.0), contact.get("stribeck_velocity", 0.02)
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (drop, stribeck_velocity)):
         raise CoefficientFileError(f"{path}: contact.friction_drop and contact.stribeck_velocity must be numbers")
     try:

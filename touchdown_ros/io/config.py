@@ -63,6 +63,9 @@ SUPPORT_CHOICES = ("auto", "rigid", "yielding", "given")
 #: cross_validation (a factor on the fitted Q, chosen by the smoother's leave-one-out error of the positions; it
 #: made the velocity worse and its band too narrow: docs/calibration.md, "The smoothed estimate with the fitted Q").
 SMOOTHING_NOISE_CHOICES = ("cross_validation", "likelihood")
+#: training.friction_drop: given (contact.friction_drop and stribeck_velocity as the YAML says, held) or fitted
+#: (stage 1 fits both from the YAML's as a guess, held by the prior where the data say little; a ring friction only).
+FRICTION_DROP_CHOICES = ("given", "fitted")
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,7 @@ class TrainingSettings:
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
     smoothing_noise: str = "likelihood"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
+    friction_drop: str = "given"  # stage 1: the ring friction's Stribeck drop (FRICTION_DROP_CHOICES)
 
 
 @dataclass(frozen=True)
@@ -432,7 +436,7 @@ def _contact_law(read: ParameterReader) -> ContactLaw:
     friction = read.choice("contact.friction", "paper", FRICTION_MODELS)
     slip_velocity = read.number("contact.slip_velocity", 0.01, positive=True)
     drop = read.number("contact.friction_drop", 0.0, non_negative=True)
-    stribeck_velocity = read.number("contact.stribeck_velocity", 0.05, positive=True)
+    stribeck_velocity = read.number("contact.stribeck_velocity", 0.02, positive=True)
     try:
         return (
             ContactLaw.of(name, exponent).with_support(preload, span).with_friction(friction, slip_velocity)
@@ -500,7 +504,24 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
         refinement=read.choice("training.refinement", d.refinement, REFINEMENT_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
+        friction_drop=_friction_drop(read, law),
     )
+
+
+def _friction_drop(read: ParameterReader, law: ContactLaw) -> str:
+    """training.friction_drop; `fitted` needs a ring friction and a guess of the drop > 0 to start from."""
+    choice = read.choice("training.friction_drop", TrainingSettings().friction_drop, FRICTION_DROP_CHOICES)
+    if choice == "fitted" and law.friction == "paper":
+        raise ConfigError(
+            f"{read.source}: training.friction_drop: fitted needs friction against a ring (contact.friction: "
+            "spinning_ring or co_rotating_ring); the paper's friction has no slip for a Stribeck drop to act on"
+        )
+    if choice == "fitted" and not float(law.friction_drop) > 0.0:
+        raise ConfigError(
+            f"{read.source}: training.friction_drop: fitted starts from contact.friction_drop (mu_s / mu_k - 1), "
+            "which must then be > 0 (a guess such as 0.3)"
+        )
+    return choice
 
 
 def _friction_models(read: ParameterReader) -> tuple[str, ...]:

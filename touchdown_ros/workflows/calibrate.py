@@ -16,6 +16,7 @@ from touchdown_ros.core.calibration import (
     CLEARANCE_UNIT,
     HELD_BY_PRIOR,
     RIGID_LOG_SUPPORT,
+    STRIBECK_NAMES,
     SUPPORT_NAMES,
     Coordinates,
     Stage1,
@@ -25,6 +26,7 @@ from touchdown_ros.core.calibration import (
     effect_scales,
     filtered_states,
     log_nominal,
+    log_stribeck_of,
     posterior_covariance,
     sensor_noise,
     stage1_flags,
@@ -302,17 +304,21 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll"
     fit_clearances = settings.clearance_tolerance > 0.0
+    fit_stribeck = settings.friction_drop == "fitted" and config.law.friction != "paper"
     clearance_prior_sd = clearance_width(settings.clearance_tolerance)
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
     # support rigid or as given (held), or yielding (free).
     given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
     held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
-    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support))
+    log_stribeck = jnp.asarray(log_stribeck_of(config.law)) if fit_stribeck else None
+    start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support), log_stribeck)
 
     def flags(support: bool) -> Stage1:
-        """The free coordinates of a candidate: f0, Q (nll), the effects, the clearances, the support if `support`."""
-        return stage1_flags(effects, fit_q, fit_support=support, fit_clearances=fit_clearances)
+        """The free coordinates of a candidate: f0, Q (nll), the effects, the clearances, the Stribeck drop
+        (training.friction_drop: fitted), the support if `support`."""
+        return stage1_flags(effects, fit_q, fit_support=support, fit_clearances=fit_clearances,
+                            fit_stribeck=True if fit_stribeck else None)
 
     coordinates = start_coordinates = Coordinates(start, flags(support=False))
 
@@ -349,17 +355,21 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
         return with_state_size(batch, STATE_SIZE) if spinning else batch
 
     def describe(x: np.ndarray) -> str:
-        """f0 (the first free coordinates), the support when its two are free too (before the clearances) and
-        the clearances' changes (the last two, when fitted)."""
+        """f0 (the first free coordinates), the support when its two are free too (before the clearances), the
+        clearances' changes and the Stribeck drop (the last ones, when fitted)."""
         text = "  " + "  ".join(f"{n} {v:.3g}" for n, v in zip(PARAMETER_NAMES, np.exp(x[: len(PARAMETER_NAMES)])))
         clearances = len(CLEARANCE_NAMES) if fit_clearances else 0
+        stribeck = len(STRIBECK_NAMES) if fit_stribeck else 0
+        end = len(x) - stribeck
         if len(x) == len(start_coordinates.names) + len(SUPPORT_NAMES):
-            support = x[len(x) - clearances - len(SUPPORT_NAMES): len(x) - clearances]
+            support = x[end - clearances - len(SUPPORT_NAMES): end - clearances]
             text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(SUPPORT_NAMES, support))
         if clearances:
             text += "  " + "  ".join(
-                f"{n} {c * CLEARANCE_UNIT * 1e6:+.1f} um" for n, c in zip(CLEARANCE_NAMES, x[-clearances:])
+                f"{n} {c * CLEARANCE_UNIT * 1e6:+.1f} um" for n, c in zip(CLEARANCE_NAMES, x[end - clearances: end])
             )
+        if stribeck:
+            text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(STRIBECK_NAMES, x[end:]))
         return text
 
     newton_terms: dict[tuple, Any] = {}  # Gauss-Newton's terms on all records by (law, coordinates, x)
@@ -417,7 +427,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     def with_support_at(coordinates: Coordinates, theta: Stage1, log_support) -> np.ndarray:
         """The free coordinates of theta's constants (f0, Q, effects) with the support `log_support`."""
         return coordinates.initial(log_f0=theta.log_f0, log_q=theta.log_q, effects=theta.effects,
-                                   log_support=jnp.asarray(log_support), clearance=theta.clearance)
+                                   log_support=jnp.asarray(log_support), clearance=theta.clearance,
+                                   log_stribeck=theta.log_stribeck)
 
     def fit_support(law: ContactLaw, records: Batch, theta_rigid: Stage1, tolerance: float, label: str):
         """(coordinates, x, convergence) of `law` with a yielding axial support fitted on `records`
@@ -637,8 +648,12 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     relative_sd = {n: float(v) for n, v in zip(coordinates.names, sd) if n not in CLEARANCE_NAMES}
     clearance_sd = {n: float(v) * CLEARANCE_UNIT for n, v in zip(coordinates.names, sd) if n in CLEARANCE_NAMES}
     relative_sd.update(effect_relative_sd(relative_sd, theta.effects, scales))
-    held = tuple(n for n in PARAMETER_NAMES if relative_sd[n] >= HELD_BY_PRIOR * settings.prior_width)
+    held = tuple(
+        n for n in PARAMETER_NAMES + STRIBECK_NAMES if relative_sd.get(n, 0.0) >= HELD_BY_PRIOR * settings.prior_width
+    )
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
+    if fit_stribeck:
+        law = law.with_stribeck(float(model.law.friction_drop), float(model.law.stribeck_velocity))
     if not given:  # a given support stays as the user wrote it (not through exp(ln))
         law = law.with_support(
             float(model.law.support_preload), float(model.law.support_span),
