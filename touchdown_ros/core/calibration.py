@@ -624,6 +624,7 @@ def stage1_gauss_newton(
         total, d_total, information = jax.shard_map(
             share, mesh=mesh, in_specs=(P(),) * 5 + (P(RECORDS),), out_specs=P(), check_vma=False
         )(*replicated, batch)
+
     def prior_of(t: Stage1) -> Array:
         return stage1_prior(t, guess_log_f0, prior_width, clearance_width, base.law)
 
