@@ -171,9 +171,9 @@ def test_config_reads_the_stribeck_drop_and_refuses_to_fit_one_it_cannot():
         ({"contact.friction_drop": -0.1}, "contact.friction_drop' must be >= 0"),
         ({"contact.stribeck_velocity": 0.0}, "contact.stribeck_velocity' must be > 0"),
         ({"training.friction_drop": "fitted"}, "contact.friction_drop .* must then be > 0"),
-        ({"training.friction_drop": "fitted", "contact.friction_drop": 0.3, "contact.friction": "paper"},
-         "fitted needs friction against a ring"),
+        ({"training.friction_drop": "fitted", "contact.friction": "paper"}, "fitted needs friction against a ring"),
         ({"training.friction_drop": "guessed"}, "training.friction_drop"),
+        ({"contact.friction_drop": 0.3, "contact.friction": "paper"}, "the drop would be ignored"),
     ):
         with pytest.raises(ConfigError, match=message):
             load_config(overrides=overrides)

@@ -70,7 +70,8 @@ def friction(
     slides on it at u = centre velocity - omega x centre position: tangentially at
     s_t = whirl - omega r, radially at rdot, axially at zdot. Coulomb friction opposes that slip
     with mu F_nR in the bore (on (s_t, zdot)) and k_ZR F_zZ on the face (on (s_t, rdot)),
-    regularised below the law's slip velocity. It drives the rotor towards forward synchronous whirl.
+    regularised below the law's slip velocity, each coefficient times the law's Stribeck factor at its slip
+    (`stribeck_factor`). It drives the rotor towards forward synchronous whirl.
     A ring whose speed is a state: `ring_friction`.
     """
     if law.friction == "paper":  # static: the law's friction model is pytree aux data
@@ -96,7 +97,8 @@ def ring_friction(
     s_t = whirl + R omega - (R + r) omega_ring and axially at zdot; mu F_nR opposes (s_t, zdot).
     Face (mean radius R_a): the rotor spins against the ring at (omega - omega_ring) R_a and its
     centre moves at (whirl - omega r, rdot); k_ZR F_zZ opposes that slip (the spin counted twice
-    for the annulus' mean torque arm). Both torques turn the ring towards the rotor's speed.
+    for the annulus' mean torque arm). Both torques turn the ring towards the rotor's speed. Each
+    coefficient is times the law's Stribeck factor at its slip speed (`stribeck_factor`).
     """
     v = law.slip_velocity
     slip_t = whirl + rig.journal_radius * speed - (rig.journal_radius + r) * ring_speed

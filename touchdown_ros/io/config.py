@@ -437,6 +437,11 @@ def _contact_law(read: ParameterReader) -> ContactLaw:
     slip_velocity = read.number("contact.slip_velocity", 0.01, positive=True)
     drop = read.number("contact.friction_drop", 0.0, non_negative=True)
     stribeck_velocity = read.number("contact.stribeck_velocity", 0.02, positive=True)
+    if drop > 0.0 and friction == "paper":
+        raise ConfigError(
+            f"{read.source}: contact.friction_drop acts on the slip against a ring (contact.friction: spinning_ring "
+            "or co_rotating_ring); the paper's friction has no slip, so the drop would be ignored: set it to 0"
+        )
     try:
         return (
             ContactLaw.of(name, exponent).with_support(preload, span).with_friction(friction, slip_velocity)
