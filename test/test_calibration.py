@@ -281,6 +281,21 @@ def test_stage1_fits_the_stribeck_drop_on_a_log_scale_held_by_a_prior_around_the
     assert not set(STRIBECK_NAMES) & set(held.names)
 
 
+def test_the_file_gets_each_pairs_block_of_stage_1s_covariance():
+    """`log_covariance_block`: the (2, 2) block of the support's or the drop's logarithms, wherever stage 1's
+    coordinates put them; exact (zero) for a pair it did not fit."""
+    from touchdown_ros.core.calibration import STRIBECK_NAMES, SUPPORT_NAMES
+    from touchdown_ros.core.types import EXACT_PAIR
+    from touchdown_ros.workflows.calibrate import log_covariance_block
+
+    names = ["k_R", "support_preload", "c_R", "friction_drop", "support_span", "stribeck_velocity"]
+    A = np.random.default_rng(5).standard_normal((6, 6))
+    covariance = A @ A.T
+    for pair, index in ((SUPPORT_NAMES, [1, 4]), (STRIBECK_NAMES, [3, 5])):
+        np.testing.assert_array_equal(log_covariance_block(names, covariance, pair), covariance[np.ix_(index, index)])
+    assert log_covariance_block(names[:3], covariance[:3, :3], STRIBECK_NAMES) == EXACT_PAIR
+
+
 def test_hertz_force_and_guess_conversion():
     law = ContactLaw.of("hertz", 1.5)
     d, rate = 30e-6, 0.05

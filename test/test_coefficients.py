@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.core.types import Coefficients, ContactLaw
+from touchdown_ros.core.types import EXACT_PAIR, Coefficients, ContactLaw
 from touchdown_ros.io.coefficients import (
     CoefficientFileError,
     TrainingRecord,
@@ -111,19 +111,26 @@ def test_file_carries_a_yielding_support_and_refuses_a_bad_one(tmp_path):
             load_coefficients(rigid, CONFIG)
 
 
-def test_file_carries_the_supports_covariance_and_refuses_a_bad_one(tmp_path):
-    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4, ((6.25, -57.5), (-57.5, 530.0)))
+@pytest.mark.parametrize("key", ["support_log_covariance", "stribeck_log_covariance"])
+def test_file_carries_a_pairs_covariance_and_refuses_a_bad_one(tmp_path, key):
+    """The support's (ln preload, ln span) and the Stribeck drop's (ln drop, ln v_s) covariances from stage 1."""
+    covariance = ((6.25, -57.5), (-57.5, 530.0))
+    support, stribeck = (covariance, EXACT_PAIR) if key.startswith("support") else (EXACT_PAIR, covariance)
+    law = ContactLaw.of("hertz", 1.5).with_support(3.6e4, 1.0e4, support)
+    law = law.with_friction("spinning_ring", 0.01).with_stribeck(0.35, 0.04, stribeck)
+    uncertain = "support_uncertain" if key.startswith("support") else "stribeck_uncertain"
     path = saved_with_law(tmp_path / "c.yaml", law)  # loads back equal, covariance included
     document = yaml.safe_load(path.read_text())
-    assert document["contact"]["support_log_covariance"] == [[6.25, -57.5], [-57.5, 530.0]]
-    del document["contact"]["support_log_covariance"]  # a file of before: the support taken as exact
+    assert document["contact"][key] == [[6.25, -57.5], [-57.5, 530.0]]
+    assert getattr(load_coefficients(path, CONFIG).config(CONFIG).law, uncertain)
+    del document["contact"][key]  # a file of before: the pair taken as exact
     path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
-    assert not load_coefficients(path, CONFIG).config(CONFIG).law.support_uncertain
+    assert not getattr(load_coefficients(path, CONFIG).config(CONFIG).law, uncertain)
     bad = ([[1.0, 2.0], [2.0, 1.0]], [[1.0, 0.5], [0.4, 1.0]], [[1.0, float("nan")], [0.0, 1.0]], [1.0, 2.0], "x")
     for covariance in bad:  # not positive semi-definite, not symmetric, not finite, not 2 x 2
-        document["contact"]["support_log_covariance"] = covariance
+        document["contact"][key] = covariance
         path.write_text(yaml.safe_dump({**document, "content_sha256": content_sha256(document)}))
-        with pytest.raises(CoefficientFileError, match=r"contact\.support_log_covariance must be"):
+        with pytest.raises(CoefficientFileError, match=rf"contact\.{key} must be"):
             load_coefficients(path, CONFIG)
 
 

@@ -11,7 +11,11 @@ import yaml
 from conftest import central_differences
 
 from touchdown_ros.core import dynamics
-from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian
+from touchdown_ros.core.dynamics import (
+    contact_force_xyz, contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian,
+)
+from touchdown_ros.core.ekf import Belief
+from touchdown_ros.core.estimate import signals
 from touchdown_ros.core.effects import Effects, resolve
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, Coefficients, ContactLaw, Nominal, Rig
 from touchdown_ros.io.coefficients import CoefficientFileError, content_sha256, load_coefficients, save_coefficients
@@ -102,6 +106,40 @@ def test_step_jacobian_with_a_spinning_ring_matches_central_differences(case, br
     Phi_fd = central_differences(lambda s: rk4_step(model, jnp.asarray(s), h), xi, scales)
     np.testing.assert_allclose(np.asarray(Phi), Phi_fd, rtol=1e-5, atol=1e-7)
     assert np.any(np.abs(np.asarray(Phi)[4:7, OMEGA_RING]) > 1e-6)  # the ring's speed moves the rotor
+
+
+def test_the_force_band_carries_the_stribeck_drops_uncertainty_where_the_bore_hardly_slips():
+    """A fitted drop's covariance of (ln drop, ln v_s) adds J C J^T to the force's covariance, J the force's
+    derivative by those logarithms (central differences here): where the ring has caught up with the rotor
+    (the drop acts), not where it slides fast (the factor is 1 there), and nothing without a drop."""
+    drop, v_s, log_covariance = 0.4, 0.05, ((0.09, -0.03), (-0.03, 0.04))  # sd 0.3 and 0.2, correlation -0.5
+    xi = np.array(CASES["radial"])
+    r = np.hypot(xi[0], xi[1])
+    whirl = (xi[0] * xi[5] - xi[1] * xi[4]) / r
+    caught_up = (whirl + RIG.journal_radius * RIG.speed) / (RIG.journal_radius + r)
+    spinning = model_with("spinning_ring")
+    exact = spinning._replace(law=spinning.law.with_stribeck(drop, v_s))
+    uncertain = spinning._replace(law=spinning.law.with_stribeck(drop, v_s, log_covariance))
+    assert uncertain.law.stribeck_uncertain and not exact.law.stribeck_uncertain
+    assert not spinning.law.with_stribeck(0.0, v_s, log_covariance).stribeck_uncertain  # no drop, nothing uncertain
+    P = np.diag(np.array([2e-6, 2e-6, 2e-6, 1e-2, 3e-3, 3e-3, 3e-3, 1.0]) ** 2)
+    for ring_speed in (caught_up, 0.0):
+        state = np.append(xi, ring_speed)
+
+        def force_xyz(log_scale):
+            law = exact.law.with_stribeck(drop * np.exp(log_scale[0]), v_s * np.exp(log_scale[1]))
+            return contact_force_xyz(contact_forces(exact._replace(law=law), jnp.asarray(state)))
+
+        J = central_differences(force_xyz, np.zeros(2), [1e-6, 1e-6])
+        belief = Belief(jnp.asarray(state)[None], jnp.asarray(P)[None])
+        added = np.asarray(signals(uncertain, belief).force_cov - signals(exact, belief).force_cov)[0]
+        by_hand = J @ np.asarray(log_covariance) @ J.T
+        if ring_speed == 0.0:  # sliding at about R omega: the drop has faded, the band is as before
+            np.testing.assert_allclose(added, 0.0, atol=1e-12)
+        else:
+            friction = abs(float(contact_forces(exact, jnp.asarray(state)).F_t))
+            assert np.trace(by_hand) > (0.05 * friction) ** 2  # the friction's sd grows by more than 5 %
+            np.testing.assert_allclose(added, by_hand, rtol=1e-6, atol=1e-9 * np.trace(by_hand))
 
 
 @pytest.mark.parametrize("friction", ["spinning_ring", "co_rotating_ring"])

@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces, conta
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
-from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, FilterNoise, Model
+from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, ContactLaw, FilterNoise, Model
 
 
 class SampleGrid(NamedTuple):
@@ -158,6 +158,19 @@ def force_model_variance(model: Model, noise: FilterNoise, sample_period: float)
     return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
+def _log_parameters_force_covariance(
+    model: Model, xi: Array, rescaled: Callable[[Array], ContactLaw], log_covariance
+) -> Array:
+    """(3, 3) N^2: J C J^T, J the contact force's derivative at xi by the logarithms of two of the law's
+    parameters (`rescaled(log_scale)`: the law with them multiplied by exp(log_scale)), C their covariance."""
+
+    def force(log_scale: Array) -> Array:
+        return contact_force_xyz(contact_forces(model._replace(law=rescaled(log_scale)), xi))
+
+    J = jax.jacfwd(force)(jnp.zeros(2))
+    return J @ jnp.asarray(log_covariance) @ J.T
+
+
 def support_force_covariance(model: Model, xi: Array) -> Array | None:
     """(3, 3) N^2: the contact force's covariance at xi from the axial support's uncertainty,
     J_s C J_s^T with J_s the force's derivative by (ln preload, ln span) and C the law's
@@ -166,30 +179,54 @@ def support_force_covariance(model: Model, xi: Array) -> Array | None:
     law = model.law
     if not law.support_uncertain:
         return None
-    log_covariance = jnp.asarray(law.support_log_covariance)
+    return _log_parameters_force_covariance(
+        model, xi,
+        lambda log_scale: law._replace(
+            support_preload=law.support_preload * jnp.exp(log_scale[0]),
+            support_span=law.support_span * jnp.exp(log_scale[1]),
+        ),
+        law.support_log_covariance,
+    )
 
-    def force(log_scale: Array) -> Array:
-        scaled = law.with_support(
-            law.support_preload * jnp.exp(log_scale[0]), law.support_span * jnp.exp(log_scale[1]),
-            law.support_log_covariance,
-        )
-        return contact_force_xyz(contact_forces(model._replace(law=scaled), xi))
 
-    J_support = jax.jacfwd(force)(jnp.zeros(2))
-    return J_support @ log_covariance @ J_support.T
+def stribeck_force_covariance(model: Model, xi: Array) -> Array | None:
+    """(3, 3) N^2: the contact force's covariance at xi from the Stribeck drop's uncertainty, the
+    force's derivative by (ln friction_drop, ln stribeck_velocity) through the law's
+    `stribeck_log_covariance`; None when there is no drop or it is exact (`ContactLaw.stribeck_uncertain`)."""
+    law = model.law
+    if not law.stribeck_uncertain:
+        return None
+    return _log_parameters_force_covariance(
+        model, xi,
+        lambda log_scale: law._replace(
+            friction_drop=law.friction_drop * jnp.exp(log_scale[0]),
+            stribeck_velocity=law.stribeck_velocity * jnp.exp(log_scale[1]),
+        ),
+        law.stribeck_log_covariance,
+    )
+
+
+def law_force_covariance(model: Model, xi: Array) -> Array | None:
+    """(3, 3) N^2: the contact force's covariance at xi from the law's uncertain constants beyond f0, the
+    support's (`support_force_covariance`) plus the Stribeck drop's (`stribeck_force_covariance`; their
+    correlation left out); None when neither is uncertain."""
+    support, stribeck = support_force_covariance(model, xi), stribeck_force_covariance(model, xi)
+    if support is None:
+        return stribeck
+    return support if stribeck is None else support + stribeck
 
 
 def force_covariance(
-    forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None, support_part: Array | None = None
+    forces: ContactForces, J_force: Array, cov: Array, model_variance: Array | None, law_part: Array | None = None
 ) -> Array:
     """(3, 3) N^2: the force's covariance through its Jacobian (J P J^T), plus `model_variance`
     on the diagonal while a contact is on (out of contact the force is zero and known to be),
-    plus `support_part` (`support_force_covariance`) unless None."""
+    plus `law_part` (`law_force_covariance`) unless None."""
     covariance = J_force @ cov @ J_force.T
     if model_variance is not None:
         in_contact = jnp.logical_or(forces.radial_contact, forces.axial_contact)
         covariance = covariance + jnp.where(in_contact, jnp.diag(model_variance), 0.0)
-    return covariance if support_part is None else covariance + support_part
+    return covariance if law_part is None else covariance + law_part
 
 
 def signals(model: Model, states: Belief, model_variance: Array | None = None) -> SignalSet:
@@ -201,8 +238,8 @@ def signals(model: Model, states: Belief, model_variance: Array | None = None) -
         acceleration = phi(model, mean)[VELOCITY]
         J = jax.jacfwd(lambda s: phi(model, s)[VELOCITY])(mean)
         forces, J_force = contact_forces_and_jacobian(model, mean)
-        support_part = support_force_covariance(model, mean)
-        return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance, support_part)
+        law_part = law_force_covariance(model, mean)
+        return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance, law_part)
 
     acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)
     return SignalSet(

@@ -48,8 +48,9 @@ class Nominal(NamedTuple):
     k_ZR: float  # tangential force per axial contact force, 1
 
 
-#: `ContactLaw.support_log_covariance` of a support known exactly (rigid, given, or from an older file).
-EXACT_SUPPORT = ((0.0, 0.0), (0.0, 0.0))
+#: The log covariance of a pair of the law's constants known exactly (`ContactLaw.support_log_covariance`,
+#: `stribeck_log_covariance`: rigid, none, given, or from an older file).
+EXACT_PAIR = ((0.0, 0.0), (0.0, 0.0))
 
 
 class ContactLaw(NamedTuple):
@@ -82,13 +83,16 @@ class ContactLaw(NamedTuple):
     support_span: float = float("inf")  # N, force the yielding support adds at most above its preload
     #: covariance of (ln P, ln S) as stage 1 left it (displacements say little about a support beyond
     #: the knee, docs/calibration.md); the force band carries it (`estimate.support_force_covariance`)
-    support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = EXACT_SUPPORT
+    support_log_covariance: tuple[tuple[float, float], tuple[float, float]] = EXACT_PAIR
     friction_model: int = 0  # index into FRICTION_MODELS; 0: the paper's
     slip_velocity: float = 0.01  # m/s, slip above which ring friction reaches mu (regularised Coulomb)
     #: Stribeck drop against a ring: the coefficient is mu (1 + friction_drop exp(-(s / stribeck_velocity)^2))
     #: at slip speed s, mu_s / mu_k - 1 at rest; 0: Coulomb's (mu at every slip)
     friction_drop: float = 0.0
     stribeck_velocity: float = 0.02  # m/s, slip over which the drop fades
+    #: covariance of (ln friction_drop, ln stribeck_velocity) where stage 1 fitted them; the force band carries
+    #: it (`estimate.law_force_covariance`)
+    stribeck_log_covariance: tuple[tuple[float, float], tuple[float, float]] = EXACT_PAIR
 
     @staticmethod
     def of(name: str, exponent: float | None = None) -> "ContactLaw":
@@ -123,7 +127,7 @@ class ContactLaw(NamedTuple):
         return math.isfinite(float(self.support_preload))
 
     def with_support(
-        self, preload: float = float("inf"), span: float = float("inf"), log_covariance=EXACT_SUPPORT
+        self, preload: float = float("inf"), span: float = float("inf"), log_covariance=EXACT_PAIR
     ) -> "ContactLaw":
         """The same law with an axial support preloaded to `preload` (N; inf: rigid) that passes at most
         preload + span (N), known to `log_covariance` ((2, 2), of ln preload and ln span; zero: exactly)."""
@@ -142,19 +146,27 @@ class ContactLaw(NamedTuple):
             raise ValueError(f"slip_velocity must be > 0 m/s, got {slip_velocity!r}")
         return self._replace(friction_model=FRICTION_MODELS.index(friction), slip_velocity=slip_velocity)
 
-    def with_stribeck(self, drop: float, velocity: float) -> "ContactLaw":
+    def with_stribeck(self, drop: float, velocity: float, log_covariance=EXACT_PAIR) -> "ContactLaw":
         """The same law whose ring friction falls from mu (1 + drop) at rest to mu over slips of about
-        `velocity` m/s (Stribeck's curve, `dynamics.stribeck_factor`); drop 0: Coulomb's."""
+        `velocity` m/s (Stribeck's curve, `dynamics.stribeck_factor`); drop 0: Coulomb's. Known to
+        `log_covariance` ((2, 2), of ln drop and ln velocity; zero: exactly)."""
         if not drop >= 0.0:
             raise ValueError(f"friction_drop must be >= 0 (mu_s / mu_k - 1), got {drop!r}")
         if not velocity > 0.0:
             raise ValueError(f"stribeck_velocity must be > 0 m/s, got {velocity!r}")
-        return self._replace(friction_drop=drop, stribeck_velocity=velocity)
+        return self._replace(friction_drop=drop, stribeck_velocity=velocity, stribeck_log_covariance=log_covariance)
+
+    @property
+    def stribeck_uncertain(self) -> bool:
+        """Whether there is a drop and it carries an uncertainty (static: concrete values)."""
+        return float(self.friction_drop) > 0.0 and any(
+            float(v) != 0.0 for row in self.stribeck_log_covariance for v in row
+        )
 
     def with_friction_of(self, other: "ContactLaw") -> "ContactLaw":
         """The same law with `other`'s friction: its model, slip velocity and Stribeck drop."""
         return self.with_friction(other.friction, other.slip_velocity).with_stribeck(
-            other.friction_drop, other.stribeck_velocity
+            other.friction_drop, other.stribeck_velocity, other.stribeck_log_covariance
         )
 
     @property

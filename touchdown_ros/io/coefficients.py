@@ -18,7 +18,7 @@ from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.effects import resolve as resolve_effect
 from touchdown_ros.core.types import (
     AXIAL_PARAMETERS,
-    EXACT_SUPPORT,
+    EXACT_PAIR,
     RADIAL_PARAMETERS,
     Coefficients,
     ContactLaw,
@@ -123,6 +123,8 @@ def save_coefficients(
             "slip_velocity": float(config.law.slip_velocity),  # m/s
             "friction_drop": float(config.law.friction_drop),  # mu_s / mu_k - 1 of the ring friction; 0: none
             "stribeck_velocity": float(config.law.stribeck_velocity),  # m/s
+            # covariance of (ln friction_drop, ln stribeck_velocity) where stage 1 fitted them, for the force band
+            "stribeck_log_covariance": [[float(v) for v in row] for row in config.law.stribeck_log_covariance],
             "units": _contact_units(config),
             **{name: float(value) for name, value in config.nominal._asdict().items()},
             # m, r0 and z0 as stage 1 calibrated them (the rig YAML's rig.*_clearance moved); absent: the YAML's
@@ -304,16 +306,16 @@ def _array(
     return array
 
 
-def _support_log_covariance(path: Path, contact: Mapping[str, Any]) -> tuple[tuple[float, float], ...]:
-    """contact.support_log_covariance: a symmetric positive semi-definite (2, 2) covariance of ln preload
-    and ln span; absent (files before 2026-11-26): zero, the support taken as exact."""
-    if "support_log_covariance" not in contact:
-        return EXACT_SUPPORT
-    covariance = _array(path, {"contact": contact}, "contact.support_log_covariance", (2, 2))
+def _log_covariance(path: Path, contact: Mapping[str, Any], key: str, of: str) -> tuple[tuple[float, float], ...]:
+    """contact.`key`: a symmetric positive semi-definite (2, 2) covariance of the logarithms `of` (named in the
+    message); absent (files before it): EXACT_PAIR, the pair taken as exact."""
+    if key not in contact:
+        return EXACT_PAIR
+    covariance = _array(path, {"contact": contact}, f"contact.{key}", (2, 2))
     symmetric = np.allclose(covariance, covariance.T)
     if not symmetric or np.linalg.eigvalsh(covariance).min() < -1e-9 * np.abs(covariance).max():
         raise CoefficientFileError(
-            f"{path}: contact.support_log_covariance must be a symmetric positive semi-definite 2 x 2 matrix"
+            f"{path}: contact.{key} must be a symmetric positive semi-definite 2 x 2 matrix (the covariance of {of})"
         )
     return tuple(tuple(float(v) for v in row) for row in covariance)
 
@@ -332,7 +334,9 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
         raise CoefficientFileError(
             f"{path}: contact.support_preload and contact.support_span must be numbers > 0 N (.inf: rigid)"
         )
-    law = law.with_support(float(preload), float(span), _support_log_covariance(path, contact))
+    law = law.with_support(
+        float(preload), float(span), _log_covariance(path, contact, "support_log_covariance", "ln preload, ln span")
+    )
     slip_velocity = contact.get("slip_velocity", 0.01)  # files before friction models: the paper's friction
     if isinstance(slip_velocity, bool) or not isinstance(slip_velocity, (int, float)):
         raise CoefficientFileError(f"{path}: contact.slip_velocity must be a number > 0 m/s")
@@ -344,7 +348,10 @@ def _calibrated_config(path: Path, document: Mapping[str, Any], config: Config) 
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (drop, stribeck_velocity)):
         raise CoefficientFileError(f"{path}: contact.friction_drop and contact.stribeck_velocity must be numbers")
     try:
-        law = law.with_stribeck(float(drop), float(stribeck_velocity))
+        law = law.with_stribeck(
+            float(drop), float(stribeck_velocity),
+            _log_covariance(path, contact, "stribeck_log_covariance", "ln friction_drop, ln stribeck_velocity"),
+        )
     except ValueError as error:
         raise CoefficientFileError(f"{path}: contact.friction_drop / contact.stribeck_velocity: {error}") from None
     values = []

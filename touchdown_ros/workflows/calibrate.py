@@ -46,7 +46,7 @@ from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
-from touchdown_ros.core.types import EXACT_SUPPORT, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
+from touchdown_ros.core.types import EXACT_PAIR, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.optimise import (
@@ -653,11 +653,14 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     )
     model, fitted_noise = stage1_model_and_noise(theta, law_model(law), noise, scales)
     if fit_stribeck:
-        law = law.with_stribeck(float(model.law.friction_drop), float(model.law.stribeck_velocity))
+        law = law.with_stribeck(
+            float(model.law.friction_drop), float(model.law.stribeck_velocity),
+            log_covariance_block(coordinates.names, covariance, STRIBECK_NAMES),
+        )
     if not given:  # a given support stays as the user wrote it (not through exp(ln))
         law = law.with_support(
             float(model.law.support_preload), float(model.law.support_span),
-            support_log_covariance(coordinates.names, covariance),
+            log_covariance_block(coordinates.names, covariance, SUPPORT_NAMES),
         )
     clearances = (float(model.rig.radial_clearance), float(model.rig.axial_clearance)) if fit_clearances else None
     return Calibration(
@@ -768,12 +771,15 @@ def _uncertainty(log_sd: float) -> str:
     return f"not pinned: the standard error of its logarithm is {log_sd:.2g}"
 
 
-def support_log_covariance(names: Sequence[str], covariance: np.ndarray) -> tuple[tuple[float, float], ...]:
-    """(2, 2) block of ln preload and ln span in the posterior covariance of stage 1's coordinates
-    `names`; EXACT_SUPPORT where the support was not fitted."""
-    if not all(n in names for n in SUPPORT_NAMES):
-        return EXACT_SUPPORT
-    index = [list(names).index(n) for n in SUPPORT_NAMES]
+def log_covariance_block(
+    names: Sequence[str], covariance: np.ndarray, pair: Sequence[str]
+) -> tuple[tuple[float, float], ...]:
+    """(2, 2) block of the coordinates `pair` (SUPPORT_NAMES: ln preload and ln span; STRIBECK_NAMES: ln drop
+    and ln velocity) in the posterior covariance of stage 1's coordinates `names`; EXACT_PAIR where they were
+    not fitted."""
+    if not all(n in names for n in pair):
+        return EXACT_PAIR
+    index = [list(names).index(n) for n in pair]
     return tuple(tuple(float(v) for v in row) for row in np.asarray(covariance)[np.ix_(index, index)])
 
 

@@ -16,7 +16,7 @@ from jax import Array
 
 from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
-from touchdown_ros.core.estimate import force_covariance, force_model_variance, support_force_covariance
+from touchdown_ros.core.estimate import force_covariance, force_model_variance, law_force_covariance
 from touchdown_ros.core.streaming.outputs import PACKED_WIDTH
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, FilterNoise, Model
 
@@ -80,7 +80,7 @@ def make_chunk_filter(
                 (J @ filtered.cov @ J.T).reshape(9),
                 contact_force_xyz(forces),
                 force_covariance(
-                    forces, J_force, filtered.cov, model_variance, support_force_covariance(model, filtered.mean)
+                    forces, J_force, filtered.cov, model_variance, law_force_covariance(model, filtered.mean)
                 ).reshape(9),
                 jnp.stack([forces.F_n, forces.F_t, forces.F_z]),
                 jnp.stack([forces.radial_contact, forces.axial_contact]).astype(eta.dtype),
