@@ -123,6 +123,26 @@ def central_differences(f, x, scales):
     return np.stack(columns, axis=1)
 
 
+def band_added_and_by_hand(exact, uncertain, state, P, rescaled_law, log_covariance):
+    """((3, 3), (3, 3)) N^2: what the force covariance of `uncertain` (a model whose law carries `log_covariance`
+    of two constants) adds to `exact`'s at `state` with covariance P (`core.estimate.signals`), and J C J^T with J
+    the force's derivative by the two logarithms by central differences (`rescaled_law(log_scale)`: exact's law
+    with the two constants times exp(log_scale))."""
+    import jax.numpy as jnp
+
+    from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces
+    from touchdown_ros.core.ekf import Belief
+    from touchdown_ros.core.estimate import signals
+
+    def force_xyz(log_scale):
+        return contact_force_xyz(contact_forces(exact._replace(law=rescaled_law(log_scale)), jnp.asarray(state)))
+
+    J = central_differences(force_xyz, np.zeros(2), [1e-6, 1e-6])
+    belief = Belief(jnp.asarray(state)[None], jnp.asarray(P)[None])
+    added = np.asarray(signals(uncertain, belief).force_cov - signals(exact, belief).force_cov)[0]
+    return added, J @ np.asarray(log_covariance) @ J.T
+
+
 def library_effects(names, values=None) -> fx.Effects:
     """Effects of the library (or dotted paths) by name, at their defaults overridden by `values`."""
     return fx.Effects(tuple(fx.resolve(n) for n in names)).with_values(values or {})

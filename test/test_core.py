@@ -5,11 +5,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import central_differences
+from conftest import band_added_and_by_hand, central_differences
 from filterpy.kalman import ExtendedKalmanFilter
 
 from touchdown_ros.core.dynamics import (
-    contact_force_xyz,
     contact_forces,
     contact_forces_and_jacobian,
     phi,
@@ -384,14 +383,11 @@ def test_the_force_band_carries_the_supports_uncertainty_above_its_knee_only(cas
         uncertain = rigid._replace(law=rigid.law.with_support(preload, span, log_covariance))
         assert uncertain.law.support_uncertain and not exact.law.support_uncertain
 
-        def force_xyz(log_scale):
-            law = exact.law.with_support(preload * math.exp(log_scale[0]), span * math.exp(log_scale[1]))
-            return contact_force_xyz(contact_forces(exact._replace(law=law), jnp.asarray(xi)))
-
-        J = central_differences(force_xyz, np.zeros(2), [1e-6, 1e-6])
-        belief = Belief(jnp.asarray(xi)[None], jnp.asarray(P)[None])
-        added = np.asarray(signals(uncertain, belief).force_cov - signals(exact, belief).force_cov)[0]
-        by_hand = J @ np.asarray(log_covariance) @ J.T
+        added, by_hand = band_added_and_by_hand(
+            exact, uncertain, xi, P,
+            lambda log_scale: exact.law.with_support(preload * math.exp(log_scale[0]), span * math.exp(log_scale[1])),
+            log_covariance,
+        )
         if preload > F_zZ:  # below the knee the support passes the force as it is: nothing to add
             assert np.all(added == 0.0)
         else:

@@ -8,14 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from conftest import central_differences
+from conftest import band_added_and_by_hand, central_differences
 
 from touchdown_ros.core import dynamics
-from touchdown_ros.core.dynamics import (
-    contact_force_xyz, contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian,
-)
-from touchdown_ros.core.ekf import Belief
-from touchdown_ros.core.estimate import signals
+from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4_step, step_with_jacobian
 from touchdown_ros.core.effects import Effects, resolve
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, Coefficients, ContactLaw, Nominal, Rig
 from touchdown_ros.io.coefficients import CoefficientFileError, content_sha256, load_coefficients, save_coefficients
@@ -125,15 +121,11 @@ def test_the_force_band_carries_the_stribeck_drops_uncertainty_where_the_bore_ha
     P = np.diag(np.array([2e-6, 2e-6, 2e-6, 1e-2, 3e-3, 3e-3, 3e-3, 1.0]) ** 2)
     for ring_speed in (caught_up, 0.0):
         state = np.append(xi, ring_speed)
-
-        def force_xyz(log_scale):
-            law = exact.law.with_stribeck(drop * np.exp(log_scale[0]), v_s * np.exp(log_scale[1]))
-            return contact_force_xyz(contact_forces(exact._replace(law=law), jnp.asarray(state)))
-
-        J = central_differences(force_xyz, np.zeros(2), [1e-6, 1e-6])
-        belief = Belief(jnp.asarray(state)[None], jnp.asarray(P)[None])
-        added = np.asarray(signals(uncertain, belief).force_cov - signals(exact, belief).force_cov)[0]
-        by_hand = J @ np.asarray(log_covariance) @ J.T
+        added, by_hand = band_added_and_by_hand(
+            exact, uncertain, state, P,
+            lambda log_scale: exact.law.with_stribeck(drop * np.exp(log_scale[0]), v_s * np.exp(log_scale[1])),
+            log_covariance,
+        )
         if ring_speed == 0.0:  # sliding at about R omega: the drop has faded, the band is as before
             np.testing.assert_allclose(added, 0.0, atol=1e-12)
         else:

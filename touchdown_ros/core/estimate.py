@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces, conta
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
-from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, ContactLaw, FilterNoise, Model
+from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, FilterNoise, Model
 
 
 class SampleGrid(NamedTuple):
@@ -158,14 +158,14 @@ def force_model_variance(model: Model, noise: FilterNoise, sample_period: float)
     return model.rig.mass**2 * jnp.asarray(noise.process)[VELOCITY] / sample_period**2
 
 
-def _log_parameters_force_covariance(
-    model: Model, xi: Array, rescaled: Callable[[Array], ContactLaw], log_covariance
-) -> Array:
-    """(3, 3) N^2: J C J^T, J the contact force's derivative at xi by the logarithms of two of the law's
-    parameters (`rescaled(log_scale)`: the law with them multiplied by exp(log_scale)), C their covariance."""
+def _pair_force_covariance(model: Model, xi: Array, pair: tuple[str, str], log_covariance) -> Array:
+    """(3, 3) N^2: J C J^T, J the contact force's derivative at xi by the logarithms of the law's two
+    constants named `pair`, C their covariance (`log_covariance`)."""
+    law = model.law
 
     def force(log_scale: Array) -> Array:
-        return contact_force_xyz(contact_forces(model._replace(law=rescaled(log_scale)), xi))
+        scaled = law._replace(**{name: getattr(law, name) * jnp.exp(log_scale[i]) for i, name in enumerate(pair)})
+        return contact_force_xyz(contact_forces(model._replace(law=scaled), xi))
 
     J = jax.jacfwd(force)(jnp.zeros(2))
     return J @ jnp.asarray(log_covariance) @ J.T
@@ -176,33 +176,19 @@ def support_force_covariance(model: Model, xi: Array) -> Array | None:
     J_s C J_s^T with J_s the force's derivative by (ln preload, ln span) and C the law's
     `support_log_covariance`. Zero below the support's knee (there the force does not depend on it);
     None (nothing computed) when the law's support is rigid or exact (`ContactLaw.support_uncertain`)."""
-    law = model.law
-    if not law.support_uncertain:
+    if not model.law.support_uncertain:
         return None
-    return _log_parameters_force_covariance(
-        model, xi,
-        lambda log_scale: law._replace(
-            support_preload=law.support_preload * jnp.exp(log_scale[0]),
-            support_span=law.support_span * jnp.exp(log_scale[1]),
-        ),
-        law.support_log_covariance,
-    )
+    return _pair_force_covariance(model, xi, ("support_preload", "support_span"), model.law.support_log_covariance)
 
 
 def stribeck_force_covariance(model: Model, xi: Array) -> Array | None:
     """(3, 3) N^2: the contact force's covariance at xi from the Stribeck drop's uncertainty, the
     force's derivative by (ln friction_drop, ln stribeck_velocity) through the law's
     `stribeck_log_covariance`; None when there is no drop or it is exact (`ContactLaw.stribeck_uncertain`)."""
-    law = model.law
-    if not law.stribeck_uncertain:
+    if not model.law.stribeck_uncertain:
         return None
-    return _log_parameters_force_covariance(
-        model, xi,
-        lambda log_scale: law._replace(
-            friction_drop=law.friction_drop * jnp.exp(log_scale[0]),
-            stribeck_velocity=law.stribeck_velocity * jnp.exp(log_scale[1]),
-        ),
-        law.stribeck_log_covariance,
+    return _pair_force_covariance(
+        model, xi, ("friction_drop", "stribeck_velocity"), model.law.stribeck_log_covariance
     )
 
 
