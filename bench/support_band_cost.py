@@ -60,8 +60,9 @@ def stribeck_laws(model, filtered) -> tuple[dict, int]:
     uncertain = model._replace(law=list(laws.values())[2])
     added = jax.vmap(lambda xi: stribeck_force_covariance(uncertain, xi))(jnp.asarray(filtered.state))
     band = np.trace(np.asarray(filtered.force_cov), axis1=1, axis2=2)
-    relative = np.asarray(jnp.trace(added, axis1=1, axis2=2)) / band
-    sums = np.convolve(np.nan_to_num(relative), np.ones(SIZE), mode="valid")
+    part = np.asarray(jnp.trace(added, axis1=1, axis2=2))
+    relative = np.divide(part, band, out=np.zeros_like(band), where=band > 0)  # out of contact both are 0
+    sums = np.convolve(relative, np.ones(SIZE), mode="valid")
     return laws, max(1, int(np.argmax(sums)))
 
 
