@@ -274,6 +274,14 @@ class Config:
         laws = tuple(c.with_friction(friction, c.slip_velocity) for c in self.training.contact_laws)
         return replace(self, law=law, noise=noise, training=replace(self.training, contact_laws=laws))
 
+    def without_stribeck_fit(self) -> "Config":
+        """This rig with no Stribeck drop, given (`training.friction_drop: given`), in its law and candidate laws."""
+        laws = tuple(c.with_stribeck(0.0, c.stribeck_velocity) for c in self.training.contact_laws)
+        return replace(
+            self, law=self.law.with_stribeck(0.0, self.law.stribeck_velocity),
+            training=replace(self.training, contact_laws=laws, friction_drop="given"),
+        )
+
     def model_variance(self) -> np.ndarray | None:
         """(3,) N^2 the force band adds in contact: the coefficient file's measured one, else None (the
         estimators then read the process noise as a force, `core.estimate.force_model_variance`)."""

@@ -278,12 +278,12 @@ def after_restart(first: Convergence, again: Convergence, restart: str, cap: int
     )
 
 
-def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -> Calibration:
+def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, hold_q: bool = False) -> Calibration:
     """Stage 1 (core.calibration): for each candidate contact law, rigid and with a yielding axial
-    support, fit f0, the Q factors, the effects' parameters (and the support's) from the YAML's
-    guess; keep the candidate with the lowest information criterion (`training.search`). The loss alone's
-    and the standard errors' programs (and with a spinning ring the refinement's) are compiled in `ahead`'s
-    background thread while the laws are fitted."""
+    support, fit f0, the Q factors (unless `hold_q`: the config's process noise as it is), the effects'
+    parameters (and the support's) from the YAML's guess; keep the candidate with the lowest information
+    criterion (`training.search`). The loss alone's and the standard errors' programs (and with a spinning
+    ring the refinement's) are compiled in `ahead`'s background thread while the laws are fitted."""
     settings = config.training
     config = started_from_orbits(config, data, stream)
     sigma = measured_sensor_noise(config, data, stream)
@@ -302,7 +302,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR) -
     note_ungated(effects, chunks, stream)
     scales = start_scales(config.model(), noise, h, chunks)
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
-    fit_q = kind == "nll"
+    fit_q = kind == "nll" and not hold_q
     fit_clearances = settings.clearance_tolerance > 0.0
     fit_stribeck = settings.friction_drop == "fitted" and config.law.friction != "paper"
     clearance_prior_sd = clearance_width(settings.clearance_tolerance)
