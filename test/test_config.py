@@ -158,6 +158,18 @@ def test_deep_shared_memory_profile_is_a_fast_dds_profile():
     assert shm[0].findtext("dds:transport_id", namespaces=ns) in used
 
 
+def test_without_stribeck_fit_is_the_rig_with_no_drop_given():
+    """What `train` fits first with training.friction_drop: fitted (for the process noise): the same rig with
+    no drop, in its law and every candidate law, and the drop given; the rest as it was."""
+    fitted = load_config(overrides={"contact.friction_drop": 0.3, "contact.stribeck_velocity": 0.03,
+                                    "training.friction_drop": "fitted"})
+    plain = fitted.without_stribeck_fit()
+    assert plain.training.friction_drop == "given"
+    assert all(law.friction_drop == 0.0 for law in (plain.law, *plain.training.contact_laws))
+    assert plain.law == fitted.law.with_stribeck(0.0, 0.03) and plain.noise is fitted.noise
+    assert len(plain.training.contact_laws) == len(fitted.training.contact_laws) > 1
+
+
 def test_config_reads_the_stribeck_drop_and_refuses_to_fit_one_it_cannot():
     """contact.friction_drop and stribeck_velocity reach the law and every candidate law; training.friction_drop:
     fitted needs a ring's friction and a guess of the drop > 0, each refused by name."""
