@@ -17,7 +17,7 @@ from jax.sharding import Mesh
 from scipy.optimize import minimize_scalar
 
 from touchdown_ros.workflows.calibrate import (
-    Calibration, calibrate, calibrate_frictions, filtered_records, stage1_batches,
+    Calibration, calibrate_frictions, calibrate_stage1, filtered_records, stage1_batches,
 )
 from touchdown_ros.core.calibration import (
     apply_scales,
@@ -562,20 +562,9 @@ def _train(
             calibration = calibrate_frictions(config, data, stream)
             compile_stage2_ahead(ahead, calibration.config, data)
             ahead.start()
-        elif config.training.friction_drop == "fitted" and config.training.loss == "nll":
-            # The drop explains radial motion the process noise covers without it, and a Q fitted beside it
-            # came out 29-500x smaller and too narrow on bags it did not see (docs/calibration.md): Q is the
-            # model's without a drop, the drop fitted after it with Q held.
-            print("[friction drop] stage 1 without the drop, for the process noise", file=stream, flush=True)
-            with Ahead(stream) as plain_ahead:
-                plain = calibrate(config.without_stribeck_fit(), data, plain_ahead, stream)
-            config = replace(config, noise=config.noise._replace(process=plain.config.noise.process))
-            print("[friction drop] stage 1 with the drop, the process noise held", file=stream, flush=True)
-            compile_stage2_ahead(ahead, config, data)
-            calibration = calibrate(config, data, ahead, stream, hold_q=True)
         else:
             compile_stage2_ahead(ahead, config, data)
-            calibration = calibrate(config, data, ahead, stream)
+            calibration = calibrate_stage1(config, data, ahead, stream)
         calibrated = calibration.config
         stage1 = calibration.summary()
         if config.training.placement == "data":
