@@ -164,6 +164,8 @@ def test_without_stribeck_fit_is_the_rig_with_no_drop_given():
     fitted = load_config(overrides={"contact.friction_drop": 0.3, "contact.stribeck_velocity": 0.03,
                                     "training.friction_drop": "fitted"})
     plain = fitted.without_stribeck_fit()
+    assert fitted.fits_stribeck_drop and not plain.fits_stribeck_drop
+    assert not fitted.with_friction("paper").fits_stribeck_drop  # no slip for a drop to act on
     assert plain.training.friction_drop == "given"
     assert all(law.friction_drop == 0.0 for law in (plain.law, *plain.training.contact_laws))
     assert plain.law == fitted.law.with_stribeck(0.0, 0.03) and plain.noise is fitted.noise

@@ -274,6 +274,12 @@ class Config:
         laws = tuple(c.with_friction(friction, c.slip_velocity) for c in self.training.contact_laws)
         return replace(self, law=law, noise=noise, training=replace(self.training, contact_laws=laws))
 
+    @property
+    def fits_stribeck_drop(self) -> bool:
+        """Whether stage 1 fits the Stribeck drop: training.friction_drop: fitted, against a ring (the paper's
+        friction has no slip for it to act on)."""
+        return self.training.friction_drop == "fitted" and self.law.friction != "paper"
+
     def without_stribeck_fit(self) -> "Config":
         """This rig with no Stribeck drop, given (`training.friction_drop: given`), in its law and candidate laws."""
         laws = tuple(c.with_stribeck(0.0, c.stribeck_velocity) for c in self.training.contact_laws)

@@ -304,7 +304,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     n_valid = int(sum(np.sum(np.asarray(chunk.valid)) for chunk in chunks))
     fit_q = kind == "nll" and not hold_q
     fit_clearances = settings.clearance_tolerance > 0.0
-    fit_stribeck = settings.friction_drop == "fitted" and config.law.friction != "paper"
+    fit_stribeck = config.fits_stribeck_drop
     clearance_prior_sd = clearance_width(settings.clearance_tolerance)
 
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
@@ -685,8 +685,7 @@ def calibrate_stage1(config: Config, data: TrainingData, ahead: Ahead, stream=ST
     two passes: without the drop first, for the process noise, then the drop with that noise held. The drop
     explains radial motion the process noise covers without it, and a Q fitted beside it came out 29-500x smaller
     and too narrow on bags it did not see (docs/calibration.md, "A Stribeck drop of the ring friction")."""
-    settings = config.training
-    if not (settings.friction_drop == "fitted" and config.law.friction != "paper" and settings.loss == "nll"):
+    if not (config.fits_stribeck_drop and config.training.loss == "nll"):
         return calibrate(config, data, ahead, stream)
     print("[friction drop] stage 1 without the drop, for the process noise", file=stream, flush=True)
     with Ahead(stream) as plain_ahead:
