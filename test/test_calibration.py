@@ -322,6 +322,10 @@ def test_a_fitted_drop_takes_the_process_noise_of_stage_1_without_it(experiment_
     assert not np.array_equal(plain.config.noise.process, config.noise.process)  # the plain fit moved it
     assert set(STRIBECK_NAMES) <= set(fitted.relative_sd) and not set(Q_NAMES) & set(fitted.relative_sd)
     assert set(Q_NAMES) <= set(plain.relative_sd)
+    recorded = fitted.summary()["process_noise_pass"]  # the file says where its Q came from
+    assert recorded["final_loss"] == plain.convergence.final_loss and recorded["friction_drop"] == "none"
+    np.testing.assert_array_equal(recorded["process_noise"], plain.config.noise.process)
+    assert "process_noise_pass" not in plain.summary()
 
 
 def test_hertz_force_and_guess_conversion():

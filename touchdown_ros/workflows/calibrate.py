@@ -100,6 +100,8 @@ class Calibration:
     # with several `training.friction_models`: each one's fit (friction, law, loss, criterion above the best, s)
     frictions: tuple[dict[str, Any], ...] = ()
     clearance_sd: dict[str, float] = dataclasses.field(default_factory=dict)  # m, posterior sd of r0 and z0
+    # with a fitted Stribeck drop: the stage 1 without it whose process noise this one holds (`calibrate_stage1`)
+    process_noise_pass: dict[str, Any] | None = None
 
     def clearance_changes(self) -> dict[str, float]:
         """m, the calibrated r0 and z0 minus the rig YAML's (empty where they were not fitted)."""
@@ -126,6 +128,7 @@ class Calibration:
             "sensor_noise_m": [float(v) for v in self.sensor_noise],
             "candidates": list(self.candidates),
             **({"friction_models": list(self.frictions)} if self.frictions else {}),
+            **({"process_noise_pass": self.process_noise_pass} if self.process_noise_pass else {}),
             "notes": self.notes(),
             **self.convergence.as_dict(),
         }
@@ -692,7 +695,10 @@ def calibrate_stage1(config: Config, data: TrainingData, ahead: Ahead, stream=ST
         plain = calibrate(config.without_stribeck_fit(), data, plain_ahead, stream)
     held = dataclasses.replace(config, noise=config.noise._replace(process=plain.config.noise.process))
     print("[friction drop] stage 1 with the drop, the process noise held", file=stream, flush=True)
-    return calibrate(held, data, ahead, stream, hold_q=True)
+    with_drop = calibrate(held, data, ahead, stream, hold_q=True)
+    plain_pass = {"friction_drop": "none", "law": plain.config.law.label, "criterion": plain.criterion,
+                  "process_noise": [float(q) for q in plain.config.noise.process], **plain.convergence.as_dict()}
+    return dataclasses.replace(with_drop, process_noise_pass=plain_pass)
 
 
 def calibrate_frictions(config: Config, data: TrainingData, stream=STDERR) -> Calibration:
