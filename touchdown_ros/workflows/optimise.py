@@ -38,6 +38,17 @@ class Convergence:
         if self.kept_step is not None:
             record.update(kept_step=self.kept_step, held_out_initial=self.held_out[0],
                           held_out_kept=self.held_out[self.kept_step])
+        record.update(self.histories())
+        return record
+
+    def histories(self) -> dict[str, list[float]]:
+        """The loss at step 0, 1, ... (`loss_history`) and the held-out loss (`held_out_history`), where recorded:
+        what `touchdown report` draws."""
+        record = {}
+        if self.history:
+            record["loss_history"] = [float(self.initial_loss), *map(float, self.history)]
+        if self.held_out:
+            record["held_out_history"] = [float(v) for v in self.held_out]
         return record
 
 

@@ -323,7 +323,7 @@ def fit_regularisation_path(
         loss = held_out[kept or 0]
         tried.append({
             "regularisation": lam, "held_out_loss_start": held_out[0], "held_out_loss": loss,
-            "steps": result.steps, "kept_step": kept,
+            "steps": result.steps, "kept_step": kept, **(convergence.histories() if convergence is not None else {}),
             **({HELD_OUT_BLOCKS: result.held_out_blocks.tolist(), "held_out_samples": result.held_out_samples,
                 "initial_loss": result.initial_loss, "final_loss": result.final_loss}
                if result.held_out_blocks is not None else {}),  # what a resumed path's choice needs of it
