@@ -159,7 +159,7 @@ def test_estimate_with_a_spinning_ring_writes_the_rings_speed_and_the_papers_fri
 
 
 def test_help_of_every_subcommand():
-    for command in ("simulate", "estimate", "train", "evaluate", "demo", "replay"):
+    for command in ("simulate", "estimate", "train", "evaluate", "diagnose", "report", "demo", "replay"):
         result = subprocess.run(
             [sys.executable, "-m", "touchdown_ros.cli", command, "--help"], capture_output=True, text=True, check=True
         )

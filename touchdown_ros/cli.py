@@ -159,6 +159,7 @@ def _trained(outcome, bags: int, out: Path) -> None:
         f"{min(outcome.mean_nis):.2f}-{max(outcome.mean_nis):.2f} (3 when consistent)"
     )
     print(f"trained on {bags} bag(s) in {outcome.seconds:.1f} s; wrote {out}")
+    print(f"tables and figures of what it found: touchdown report {out} -o DIR")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -172,6 +173,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def _evaluated(out: Path) -> None:
     print((out / "evaluation.md").read_text(), end="")
     print(f"tables, evaluation.json and figures in {out}")
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    _commands().report_training(_config(args), args.coeffs, args.out)
+    print((args.out / "training.md").read_text(), end="")
+    print(f"training.md and figures in {args.out}")
+    return 0
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
@@ -300,6 +308,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv-steps", type=int, default=12, help="L-BFGS steps per held-out fold (warm-started)")
     p.add_argument("--example", default="exp_11", help="bag shown in the time-series figures (default exp_11)")
     p.set_defaults(run=cmd_evaluate)
+
+    p = sub.add_parser("report", help="what training found, from a coefficient file: training.md and figures")
+    _add_config(p)
+    p.add_argument("coeffs", type=Path, metavar="COEFFS", help="coefficient file written by touchdown train")
+    p.add_argument("-o", "--out", type=Path, required=True, help="output directory for training.md and figures")
+    p.set_defaults(run=cmd_report)
 
     p = sub.add_parser(
         "diagnose", help="where the model fails, the force it lacks and which candidate effect explains it"

@@ -33,6 +33,7 @@ from touchdown_ros.workflows.outputs import OutputGuard, check_writable
 from touchdown_ros.workflows.progress import progress
 from touchdown_ros.workflows.report.estimate import plot_estimate, write_summaries
 from touchdown_ros.workflows.report.evaluation import write_evaluation
+from touchdown_ros.workflows.report.training import REPORT_FILES, write_training_report
 from touchdown_ros.workflows.train import TrainOutcome, Trainable, train
 
 #: What `diagnose_bags` writes in its output directory.
@@ -228,3 +229,12 @@ def diagnose_bags(
         check_bag(config, bag)
     with OutputGuard([out, *(out / name for name in DIAGNOSIS_FILES)]):
         return run_diagnosis(config, bags, out, coeffs=coefficients, compare=compare_with, settings=settings)
+
+
+def report_training(config: Config, coefficients: Path, out: Path) -> list[Path]:
+    """What `touchdown train` found, from the coefficient file alone: training.md and figures/ in out
+    (the file checked against the rig first, as every command does)."""
+    config, loaded = _with_coefficients(config, coefficients)
+    check_writable(out, directory=True)
+    with OutputGuard([out, *(out / name for name in REPORT_FILES)]):
+        return write_training_report(loaded, config, coefficients, out)

@@ -11,6 +11,8 @@ import numpy as np
 from touchdown_ros.core.diagnostics.breakdown import AXES
 from touchdown_ros.core.metrics import impacts
 from touchdown_ros.core.pkbkr import axial_parameters, radial_parameters
+from touchdown_ros.core.types import Coefficients
+from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.evaluate import IMPACT_THRESHOLD, BagComparison
 from touchdown_ros.workflows.report.plotting import plt, save, seconds
 
@@ -115,6 +117,13 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
         ax.set_title(f"Estimated peak {name} force per impact, all experiments (PKBKR)")
         written.append(save(fig, out / figure))
 
+    written.append(plot_parameter_maps(config, coeffs, out / "parameter_maps.png"))
+    return written
+
+
+def plot_parameter_maps(config: Config, coeffs: Coefficients, path: Path) -> Path:
+    """The six PKBKR parameters over deformation and velocity, relative to their calibrated constants, where the
+    kernel centres reach (`config`: the rig as the coefficient file calibrated it)."""
     kernel, nominal = config.kernel, config.nominal
 
     def span(T, scale):
@@ -141,8 +150,7 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
         ax.set_xlabel("velocity / (m/s)")
         ax.set_ylabel("deformation / um")
     fig.suptitle("Learned PKBKR parameters relative to their nominal values")
-    written.append(save(fig, out / "parameter_maps.png"))
-    return written
+    return save(fig, path)
 
 
 SCALAR_COLUMNS = (

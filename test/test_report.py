@@ -1,0 +1,89 @@
+"""`touchdown report`: what `touchdown train` found, from the coefficient file it wrote (a real training on a
+family rig's simulated bag, not a hand-made file)."""
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from touchdown_ros.cli import EXIT_BAD_INPUT, main
+from touchdown_ros.sim.family import variant, write_rig_yaml, write_variant_bags
+
+PNG = b"\x89PNG\r\n\x1a\n"
+FIGURES = ("constants.png", "candidates.png", "convergence.png", "nis.png", "parameter_maps.png")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """soft_bearing's rig YAML and a coefficient file `touchdown train` wrote from one of its drops (two laws
+    screened, a lambda path of two; the paper's friction and 30 ms of the drop, to keep it short)."""
+    v = variant("soft_bearing")
+    out = tmp_path_factory.mktemp("report")
+    bags = write_variant_bags(v, out / "bags", n_drops=1, seed=3)
+    rig = write_rig_yaml(v, out / "bags", overwrite=True)
+    coeffs = out / "c.yaml"
+    options = ["-p", "contact.friction:=paper", "-p", "training.contact_laws:=[linear, hertz:1.5]",
+               "-p", "training.axial_support:=rigid", "-p", "training.regularisation:=[1.0, 1.0e-3]"]
+    assert main(["train", str(bags[0]), "--config", str(rig), *options, "--duration", "0.03", "-o", str(coeffs)]) == 0
+    return rig, coeffs
+
+
+def test_train_records_each_fits_loss_per_step(trained):
+    _, coeffs = trained
+    training = yaml.safe_load(coeffs.read_text())["training"]
+    calibration, pkbkr = training["calibration"], training["pkbkr"]
+    assert len(calibration["loss_history"]) == calibration["steps"] + 1
+    assert calibration["loss_history"][0] == pytest.approx(calibration["initial_loss"])
+    assert calibration["loss_history"][-1] == pytest.approx(calibration["final_loss"])
+    for tried in training["regularisation_path"]["tried"]:
+        assert len(tried["loss_history"]) == tried["steps"] + 1 == len(tried["held_out_history"])
+        assert tried["held_out_history"][tried["kept_step"]] == pytest.approx(tried["held_out_loss"])
+    assert pkbkr["held_out_history"][pkbkr["kept_step"]] == pytest.approx(pkbkr["held_out_kept"])
+
+
+def test_report_shows_the_calibration_the_lambda_path_and_figures(trained, tmp_path, capsys):
+    rig, coeffs = trained
+    out = tmp_path / "report"
+    assert main(["report", str(coeffs), "--config", str(rig), "-o", str(out)]) == 0
+    training = yaml.safe_load(coeffs.read_text())["training"]
+    calibration = training["calibration"]
+    text = (out / "training.md").read_text()
+    assert text in capsys.readouterr().out
+    assert f"Chosen: **{calibration['law']}**" in text
+    for name, value in calibration["calibrated"].items():
+        guess = calibration["guess"][name]
+        assert f"| {name} | {guess:.4g} | {value:.4g} | {value / guess:.4g} |" in text
+    for candidate in calibration["candidates"]:
+        assert f"| {candidate['law']} | {candidate['loss']:.4g} |" in text
+    chosen = training["regularisation_path"]["chosen"]
+    for tried in training["regularisation_path"]["tried"]:
+        row = f"| {tried['regularisation']:.4g} | {tried['steps']} | {tried['kept_step']} |"
+        mark = "yes |" if tried["regularisation"] == chosen else "no |"
+        assert row in text and text.split(row)[1].split("\n")[0].endswith(mark)
+    for bag, nis in training["mean_nis"].items():
+        assert f"| {bag.rsplit('/', 1)[-1]} | {nis:.4g} |" in text
+    for figure in FIGURES:
+        assert (out / "figures" / figure).read_bytes()[:8] == PNG, figure
+    assert "Figures in `figures/`: " + ", ".join(FIGURES) + "." in text
+
+
+def test_report_refuses_a_file_of_another_rig_and_writes_nothing(trained, tmp_path, capsys):
+    rig, coeffs = trained
+    out = tmp_path / "report"
+    heavier = ["--config", str(rig), "-p", "rig.mass:=300.0"]
+    assert main(["report", str(coeffs), *heavier, "-o", str(out)]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert "made for another rig" in error and "mass" in error
+    assert not out.exists()
+
+
+def test_report_of_a_file_without_a_training_record_says_so(tmp_path):
+    from touchdown_ros.core.types import Coefficients
+    from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
+    from touchdown_ros.io.config import load_config
+
+    config = load_config()
+    coeffs = save_coefficients(tmp_path / "c.yaml", Coefficients.zeros(config.kernel), config, TrainingRecord())
+    out = tmp_path / "report"
+    assert main(["report", str(coeffs), "-o", str(out)]) == 0
+    assert "No stage-1 record in this file" in (out / "training.md").read_text()
+    assert sorted(p.name for p in (out / "figures").iterdir()) == ["parameter_maps.png"]
