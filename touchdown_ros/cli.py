@@ -231,6 +231,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         _trained(
             commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs
         )
+        commands.report_training(trained, coeffs, out / "training")
+        print(f"what training found: {out / 'training' / 'training.md'} and its figures")
         commands.evaluate_bags(trained, all_bags, coeffs, out / "evaluation", cv_steps=args.cv_steps, example="exp_11")
         _evaluated(out / "evaluation")
     commands.estimate_bags(config, [bags / "exp_11"], out / "estimate", coeffs, overwrite=True)

@@ -93,6 +93,9 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
             [[r["name"], r["guess"], r["calibrated"], r["ratio"],
               None if r["relative_sd"] is None else 100 * r["relative_sd"], r["held_by_prior"]] for r in rows],
         )
+        units = (document.get("contact") or {}).get("units")
+        if units:
+            lines += ["", f"Units: {units}."]
         others = {k: v for k, v in (calibration.get("relative_standard_error") or {}).items() if k not in CONSTANTS}
         if others:
             lines += ["", "Standard errors of the other stage-1 coordinates (sd of ln value, %): "
@@ -172,7 +175,8 @@ def plot_training(loaded: CoefficientFile, config: Config, out: Path) -> list[Pa
         low, high = ratio * (1 - np.exp(-1.96 * sd)), ratio * (np.exp(1.96 * sd) - 1)
         held = np.array([r["held_by_prior"] for r in rows])
         prior = float(np.exp(config.training.prior_width))
-        ax.axhspan(1 / prior, prior, color="0.9", label=f"the prior's 1 sd (x{prior:.3g} either way)")
+        ax.axhspan(1 / prior, prior, color="0.9",
+                   label=f"the prior's 1 sd (x{prior:.3g} either way; the rig YAML's training.prior_width)")
         ax.axhline(1.0, color="0.5", lw=0.8)
         for mask, style, label in ((~held, "o", "fitted"), (held, "s", "held by the prior")):
             if mask.any():
