@@ -34,6 +34,9 @@ def test_train_records_each_fits_loss_per_step(trained):
     assert len(calibration["loss_history"]) == calibration["steps"] + 1
     assert calibration["loss_history"][0] == pytest.approx(calibration["initial_loss"])
     assert calibration["loss_history"][-1] == pytest.approx(calibration["final_loss"])
+    for candidate in calibration["candidates"]:
+        assert len(candidate["loss_history"]) == candidate["steps"] + 1
+        assert candidate["loss_history"][-1] == pytest.approx(candidate["loss"])
     for tried in training["regularisation_path"]["tried"]:
         assert len(tried["loss_history"]) == tried["steps"] + 1 == len(tried["held_out_history"])
         assert tried["held_out_history"][tried["kept_step"]] == pytest.approx(tried["held_out_loss"])

@@ -345,10 +345,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(run=cmd_diagnose)
 
-    # measured on the 2-core machine: --quick 10.5 s (2026-11-24); the demo 4 min 12 s, its training 109 s (2026-11-28)
+    # measured on the 2-core machine: --quick 10.5 s (2026-11-24); the demo 11 min 48 s, its training 359 s (2026-12-04)
     demo_text = (
-        "simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 4 min on 2 cores, "
-        "training about 2 min of it; --quick: about 10 s)"
+        "simulate the campaign, train, evaluate leave-one-out, estimate exp 11 (about 12 min on 2 cores, "
+        "training about 6 min of it; --quick: about 10 s)"
     )
     p = sub.add_parser("demo", help=demo_text, description=demo_text[0].upper() + demo_text[1:] + ".")
     _add_config(p)

@@ -628,7 +628,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     candidates = tuple(
         {"law": c.name, "contact_law": c.law.setting, "yields": c.yields, "loss": c.convergence.final_loss,
          "criterion_above_best": round(c.score - screened[0].score, 3),
-         "steps": c.convergence.steps,
+         "steps": c.convergence.steps, **c.convergence.histories(),
          **({"refined_loss": finals[c.name].convergence.final_loss,
              "refined_criterion_above_best": round(finals[c.name].score - best.score, 3),
              **refined_support(finals[c.name])} if c.name in finals else {})}

@@ -222,20 +222,25 @@ def plot_training(loaded: CoefficientFile, config: Config, out: Path) -> list[Pa
 
 
 def _convergence_figure(calibration: Mapping[str, Any], extra: Mapping[str, Any], out: Path) -> list[Path]:
-    """Stage 1's last fit and each lambda's loss and held-out loss per step (files from 2026-12-04 on
-    record them)."""
+    """Stage 1's screened candidates' and last fit's loss, and each lambda's loss and held-out loss, per step
+    (files from 2026-12-04 on record them)."""
     stage1 = calibration.get("loss_history")
+    screened = [c for c in calibration.get("candidates") or () if c.get("loss_history")]
     tried = [t for t in (extra.get("regularisation_path") or {}).get("tried") or () if t.get("loss_history")]
-    if not stage1 and not tried:
+    if not stage1 and not screened and not tried:
         return []
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for i, candidate in enumerate(screened):
+        axes[0].plot(candidate["loss_history"], color=f"C{i}", lw=1, label=f"screened: {candidate['law']}")
     if stage1:
-        axes[0].plot(np.asarray(stage1) - stage1[0], "o-")
-        axes[0].set_title(f"Stage 1's last fit: {calibration.get('law')}")
-    else:
-        axes[0].set_title("Stage 1: no history recorded")
+        axes[0].plot(stage1, "k.--", label=f"last fit, all bags: {calibration.get('law')}")
+    if all(min(c["loss_history"]) > 0 for c in screened) and (not stage1 or min(stage1) > 0):
+        axes[0].set_yscale("log")
+    axes[0].set_title("Stage 1: the candidates screened and the last fit")
+    if screened or stage1:
+        axes[0].legend(fontsize=6)
     axes[0].set_xlabel("step")
-    axes[0].set_ylabel("loss per sample, change from step 0")
+    axes[0].set_ylabel("loss per sample")
     for i, t in enumerate(tried):
         colour, loss = f"C{i}", np.asarray(t["loss_history"])
         axes[1].plot(loss - loss[0], color=colour, label=f"lambda {t['regularisation']:g}: fitted samples")
@@ -249,8 +254,8 @@ def _convergence_figure(calibration: Mapping[str, Any], extra: Mapping[str, Any]
     axes[1].set_ylabel("loss per sample, change from step 0")
     if tried:
         axes[1].legend(fontsize=7)
+    axes[1].ticklabel_format(axis="y", useOffset=False)
     for ax in axes:
-        ax.ticklabel_format(axis="y", useOffset=False)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     return [save(fig, out / "convergence.png")]
 
