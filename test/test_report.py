@@ -28,9 +28,12 @@ def trained(tmp_path_factory):
 
 
 def test_train_records_each_fits_loss_per_step(trained):
-    _, coeffs = trained
+    from touchdown_ros.io.config import load_config
+
+    rig, coeffs = trained
     training = yaml.safe_load(coeffs.read_text())["training"]
     calibration, pkbkr = training["calibration"], training["pkbkr"]
+    assert calibration["prior_width"] == load_config(rig).training.prior_width  # what the report's figure draws
     assert len(calibration["loss_history"]) == calibration["steps"] + 1
     assert calibration["loss_history"][0] == pytest.approx(calibration["initial_loss"])
     assert calibration["loss_history"][-1] == pytest.approx(calibration["final_loss"])

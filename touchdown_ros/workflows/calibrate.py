@@ -117,6 +117,7 @@ class Calibration:
             "law": self.config.law.label,
             "friction": self.config.law.friction,
             "guess": {k: float(v) for k, v in self.guess._asdict().items()},
+            "prior_width": float(self.config.training.prior_width),  # sd of ln f0 around the guess
             "calibrated": {k: float(v) for k, v in nominal._asdict().items()},
             "relative_standard_error": {k: round(v, 6) for k, v in self.relative_sd.items()},
             **({"clearances_m": {n: {"calibrated": float(getattr(self.config.contact_rig, n)),

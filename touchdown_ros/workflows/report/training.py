@@ -174,9 +174,10 @@ def plot_training(loaded: CoefficientFile, config: Config, out: Path) -> list[Pa
         sd = np.array([r["relative_sd"] if r["relative_sd"] is not None else np.nan for r in rows], dtype=float)
         low, high = ratio * (1 - np.exp(-1.96 * sd)), ratio * (np.exp(1.96 * sd) - 1)
         held = np.array([r["held_by_prior"] for r in rows])
-        prior = float(np.exp(config.training.prior_width))
-        ax.axhspan(1 / prior, prior, color="0.9",
-                   label=f"the prior's 1 sd (x{prior:.3g} either way; the rig YAML's training.prior_width)")
+        recorded = calibration.get("prior_width")  # files before 2026-12-04 do not record it: the YAML's
+        prior = float(np.exp(recorded if recorded is not None else config.training.prior_width))
+        source = "" if recorded is not None else "; the rig YAML's training.prior_width"
+        ax.axhspan(1 / prior, prior, color="0.9", label=f"the prior's 1 sd (x{prior:.3g} either way{source})")
         ax.axhline(1.0, color="0.5", lw=0.8)
         for mask, style, label in ((~held, "o", "fitted"), (held, "s", "held by the prior")):
             if mask.any():
