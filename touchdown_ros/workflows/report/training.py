@@ -75,7 +75,6 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
     naming the `figures` beside it."""
     document, training = loaded.document, loaded.training
     extra = training.extra
-    calibration = extra.get("calibration") or {}
     lines = [f"# Training report: {source.name}", ""]
     lines.append(
         f"Written {document.get('created')} by touchdown_ros {document.get('software_version')} from "
@@ -83,47 +82,59 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
         f"{_number(extra.get('seconds'), 4)} s of training."
     )
     lines += ["", "## Stage 1: the contact law and its constants", ""]
-    if calibration:
-        lines.append(f"Chosen: **{calibration.get('law')}**, friction `{calibration.get('friction')}`. Its last fit "
-                     f"{_convergence(calibration)}.")
-        lines.append("")
-        rows = constant_rows(calibration)
-        lines += _table(
-            ["constant", "guess", "calibrated", "calibrated / guess", "standard error, %", "held by the prior"],
-            [[r["name"], r["guess"], r["calibrated"], r["ratio"],
-              None if r["relative_sd"] is None else 100 * r["relative_sd"], r["held_by_prior"]] for r in rows],
-        )
-        units = (document.get("contact") or {}).get("units")
-        if units:
-            lines += ["", f"Units: {units}."]
-        others = {k: v for k, v in (calibration.get("relative_standard_error") or {}).items() if k not in CONSTANTS}
-        if others:
-            lines += ["", "Standard errors of the other stage-1 coordinates (sd of ln value, %): "
-                      + ", ".join(f"{k} {100 * v:.3g}" for k, v in others.items())]
-        correlations = calibration.get("strongest_correlations") or []
-        if correlations:
-            lines += ["", "Strongest correlations: " + ", ".join(f"{a} / {b} {r:+.2f}" for a, b, r in correlations)]
-        notes = calibration.get("notes") or []
-        if notes:
-            lines += ["", "What the bags left open:", *[f"- {note}" for note in notes]]
-        candidates = calibration.get("candidates") or []
-        if candidates:
-            lines += ["", "Candidates screened (criterion above the best; the lowest is refined on all bags):", ""]
-            lines += _table(["candidate", "loss per sample", "criterion above the best", "steps"],
-                            [[c.get("law"), c.get("loss"), c.get("criterion_above_best"), c.get("steps")]
-                             for c in candidates])
-        frictions = calibration.get("friction_models") or []
-        if frictions:
-            lines += ["", "Friction models (`training.friction_models`):", ""]
-            lines += _table(["friction", "law", "loss", "criterion above the best", "s"],
-                            [[f.get("friction"), f.get("law"), f.get("loss"), f.get("criterion_above_best"),
-                              f.get("seconds")] for f in frictions])
-        plain = calibration.get("process_noise_pass")
-        if plain:
-            lines += ["", f"The process noise comes from a stage 1 without the Stribeck drop ({plain.get('law')}): "
-                      f"{_convergence(plain)}."]
-    else:
-        lines.append("No stage-1 record in this file (written without calibration).")
+    lines += _stage1_lines(extra.get("calibration") or {}, document)
+    lines += ["", "## Stage 2: PKBKR", ""]
+    lines += _stage2_lines(extra, training.regularisation)
+    lines += ["", "## Noise and consistency", ""]
+    lines += _noise_lines(extra, config)
+    lines += ["", "## Bags", ""]
+    lines += _table(["bag", "SHA-256"], [[b.get("path"), str(b.get("sha256", ""))[:16]] for b in training.bags])
+    if figures:
+        lines += ["", "Figures in `figures/`: " + ", ".join(figures) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def _stage1_lines(calibration: Mapping[str, Any], document: Mapping[str, Any]) -> list[str]:
+    """The chosen law, the constants against the guess, what the bags left open, the candidates and the effects."""
+    if not calibration:
+        return ["No stage-1 record in this file (written without calibration)."]
+    lines = [f"Chosen: **{calibration.get('law')}**, friction `{calibration.get('friction')}`. Its last fit "
+             f"{_convergence(calibration)}.", ""]
+    rows = constant_rows(calibration)
+    lines += _table(
+        ["constant", "guess", "calibrated", "calibrated / guess", "standard error, %", "held by the prior"],
+        [[r["name"], r["guess"], r["calibrated"], r["ratio"],
+          None if r["relative_sd"] is None else 100 * r["relative_sd"], r["held_by_prior"]] for r in rows],
+    )
+    units = (document.get("contact") or {}).get("units")
+    if units:
+        lines += ["", f"Units: {units}."]
+    others = {k: v for k, v in (calibration.get("relative_standard_error") or {}).items() if k not in CONSTANTS}
+    if others:
+        lines += ["", "Standard errors of the other stage-1 coordinates (sd of ln value, %): "
+                  + ", ".join(f"{k} {100 * v:.3g}" for k, v in others.items())]
+    correlations = calibration.get("strongest_correlations") or []
+    if correlations:
+        lines += ["", "Strongest correlations: " + ", ".join(f"{a} / {b} {r:+.2f}" for a, b, r in correlations)]
+    notes = calibration.get("notes") or []
+    if notes:
+        lines += ["", "What the bags left open:", *[f"- {note}" for note in notes]]
+    candidates = calibration.get("candidates") or []
+    if candidates:
+        lines += ["", "Candidates screened (criterion above the best; the lowest is refined on all bags):", ""]
+        lines += _table(["candidate", "loss per sample", "criterion above the best", "steps"],
+                        [[c.get("law"), c.get("loss"), c.get("criterion_above_best"), c.get("steps")]
+                         for c in candidates])
+    frictions = calibration.get("friction_models") or []
+    if frictions:
+        lines += ["", "Friction models (`training.friction_models`):", ""]
+        lines += _table(["friction", "law", "loss", "criterion above the best", "s"],
+                        [[f.get("friction"), f.get("law"), f.get("loss"), f.get("criterion_above_best"),
+                          f.get("seconds")] for f in frictions])
+    plain = calibration.get("process_noise_pass")
+    if plain:
+        lines += ["", f"The process noise comes from a stage 1 without the Stribeck drop ({plain.get('law')}): "
+                  f"{_convergence(plain)}."]
     effects = document.get("effects") or {}
     if effects:
         lines += ["", "Add-on effects fitted:", ""]
@@ -131,21 +142,30 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
                         [[name, e.get("when") or "every bag",
                           ", ".join(f"{k} {_number(v)}" for k, v in (e.get("parameters") or {}).items())]
                          for name, e in effects.items()])
-    lines += ["", "## Stage 2: PKBKR", ""]
+    return lines
+
+
+def _stage2_lines(extra: Mapping[str, Any], regularisation: float) -> list[str]:
+    """The chosen lambda, how its fit ended, the lambda path and the kernel's notes."""
     path = extra.get("regularisation_path") or {}
-    lines.append(f"lambda {_number(training.regularisation)}; the fit {_convergence(extra.get('pkbkr') or {})}.")
+    lines = [f"lambda {_number(regularisation)}; the fit {_convergence(extra.get('pkbkr') or {})}."]
     tried = path.get("tried") or []
     if tried:
         lines += ["", "The lambda path (the held-out loss at each fit's kept step chooses):", ""]
         lines += _table(["lambda", "steps", "kept step", "held-out loss at the start", "held-out loss kept", "chosen"],
                         [[t.get("regularisation"), t.get("steps"), t.get("kept_step"), t.get("held_out_loss_start"),
                           t.get("held_out_loss"), t.get("regularisation") == path.get("chosen")] for t in tried])
-    for note in extra.get("kernel_notes") or []:
-        lines += ["", f"- {note}"]
-    lines += ["", "## Noise and consistency", ""]
+    notes = extra.get("kernel_notes") or []
+    if notes:
+        lines += ["", *[f"- {note}" for note in notes]]
+    return lines
+
+
+def _noise_lines(extra: Mapping[str, Any], config: Config) -> list[str]:
+    """R, the model's own force error and the mean NIS per bag."""
     sigma = np.sqrt(np.asarray(config.noise.measurement, dtype=float)) * 1e6
-    lines.append("Sensor noise R (sd per axis, from the levitated samples): "
-                 + ", ".join(f"{a} {v:.2f} um" for a, v in zip("xyz", sigma)) + ".")
+    lines = ["Sensor noise R (sd per axis, from the levitated samples): "
+             + ", ".join(f"{a} {v:.2f} um" for a, v in zip("xyz", sigma)) + "."]
     force_error = extra.get("force_model_error") or {}
     if force_error.get("rms_N"):
         lines.append("The model's own force error in contact (rms x / y / z, widens the force band): "
@@ -154,11 +174,7 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
     if nis:
         lines += ["", f"Mean NIS per bag ({CONSISTENT_NIS:g} when the filter's covariance matches its errors):", ""]
         lines += _table(["bag", "mean NIS"], [[Path(k).name, v] for k, v in nis.items()])
-    lines += ["", "## Bags", ""]
-    lines += _table(["bag", "SHA-256"], [[b.get("path"), str(b.get("sha256", ""))[:16]] for b in training.bags])
-    if figures:
-        lines += ["", "Figures in `figures/`: " + ", ".join(figures) + "."]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def plot_training(loaded: CoefficientFile, config: Config, out: Path) -> list[Path]:
