@@ -117,7 +117,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _trained(outcome, bags: int, out: Path) -> None:
+def _trained(outcome, bags: int, out: Path, report_hint: bool = True) -> None:
     """What both training stages did, in a few lines."""
     calibration, pkbkr = outcome.calibration, outcome.pkbkr
     if calibration is not None:
@@ -159,7 +159,8 @@ def _trained(outcome, bags: int, out: Path) -> None:
         f"{min(outcome.mean_nis):.2f}-{max(outcome.mean_nis):.2f} (3 when consistent)"
     )
     print(f"trained on {bags} bag(s) in {outcome.seconds:.1f} s; wrote {out}")
-    print(f"tables and figures of what it found: touchdown report {out} -o DIR")
+    if report_hint:
+        print(f"tables and figures of what it found: touchdown report {out} -o DIR")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -229,7 +230,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         trained = demo_training_config(args.config, overrides, args.paper_model)
         coeffs = out / "coefficients.yaml"
         _trained(
-            commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs
+            commands.train_bags(trained, all_bags, coeffs, steps=args.steps, overwrite=True), len(all_bags), coeffs,
+            report_hint=False,
         )
         commands.report_training(trained, coeffs, out / "training")
         print(f"what training found: {out / 'training' / 'training.md'} and its figures")
