@@ -961,6 +961,31 @@ def test_training_that_cannot_converge_says_what_to_change(tmp_path, soft_rig, c
         assert added and int(added[1]) == int(added[2]) + int(added[3]) == 4, message
 
 
+def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, capsys):
+    """`training.friction_start: both` with a spinning ring: the chosen law is refined from the screened friction
+    and from the restart grid's pair that lowers the loss on all bags; the file keeps the lower of the two fits
+    (on the campaign the screened start ended at mu 0.044, the grid's at 0.30, 400 units of -2 ln L lower)."""
+    from touchdown_ros.io.config import ConfigError, load_config
+
+    assert load_config().training.friction_start == "screened"
+    with pytest.raises(ConfigError, match="training.friction_start"):
+        load_config(overrides={"training.friction_start": "grid"})
+    v, rig = soft_rig
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=6)
+    out = tmp_path / "c.yaml"
+    assert main(["train", str(bags[0]), "--config", str(rig), "-p", "contact.friction:=spinning_ring",
+                 "-p", "training.friction_start:=both", "--steps", "0", "-o", str(out)]) == 0
+    said = "".join(capsys.readouterr())
+    line = re.search(r"\[friction start\] (.+?): (\S+) from the grid's pair against (\S+) from the screened friction; "
+                     r"kept: the (grid|screened)'s \(mu (\S+)\)", said)
+    assert line, said[-3000:]
+    grid, screened = float(line[2]), float(line[3])
+    assert line[4] == ("grid" if grid < screened else "screened")
+    calibration = yaml.safe_load(out.read_text())["training"]["calibration"]
+    assert calibration["final_loss"] == pytest.approx(min(grid, screened), rel=1e-6)
+    assert yaml.safe_load(out.read_text())["contact"]["mu"] == pytest.approx(float(line[5]), rel=2e-3)
+
+
 def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, capsys):
     """Stage 2 stopped by its step cap in its second lambda: `--resume` keeps stage 1 and the finished
     lambda (not fitted again), continues the interrupted one and cleans up beside the output."""

@@ -51,6 +51,9 @@ LOSSES = ("nll", "one_step")
 PLACEMENTS = ("data", "fixed")
 #: training.search: standard (the support chosen by BIC) or thorough (by AIC, with damping restarts).
 SEARCH_CHOICES = ("standard", "thorough")
+#: training.friction_start: where stage 1's refinement starts the friction with a spinning ring: screened (the
+#: screening's fit) or both (also from the restart grid's pair that lowers the loss on all bags; the lower fit kept).
+FRICTION_START_CHOICES = ("screened", "both")
 #: training.refinement: how stage 1 refines the chosen law on all bags: gauss_newton (Levenberg-Marquardt on the
 #: Fisher information) or lbfgs (L-BFGS-B on the gradient, the optimiser until 2026-12-01).
 REFINEMENT_CHOICES = ("gauss_newton", "lbfgs")
@@ -95,6 +98,7 @@ class TrainingSettings:
     axial_support: str = "auto"  # stage 1: fit a yielding axial support (auto: kept if the criterion falls) or not
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
+    friction_start: str = "screened"  # stage 1's refinement with a spinning ring (FRICTION_START_CHOICES)
     smoothing_noise: str = "likelihood"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
     friction_drop: str = "given"  # stage 1: the ring friction's Stribeck drop (FRICTION_DROP_CHOICES)
 
@@ -521,6 +525,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         ),
         axial_support=axial_support,
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
+        friction_start=read.choice("training.friction_start", d.friction_start, FRICTION_START_CHOICES),
         refinement=read.choice("training.refinement", d.refinement, REFINEMENT_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
         friction_drop=_friction_drop(read, law),

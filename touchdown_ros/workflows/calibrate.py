@@ -580,8 +580,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             ahead.wait(RING_REFINEMENT_PROGRAM)
     if by_gauss_newton:
         ahead.wait(GAUSS_NEWTON_PROGRAM)
-    refined = []
-    for c in finalists:
+
+    def refine_finalist(c: Candidate, label: str, required: bool = True) -> Candidate | None:
+        """A screened candidate refined on all records (with a spinning ring restarted from the friction grid
+        where that lowers its loss); None where it does not converge and is not `required` (an extra start)."""
         x = c.x
         if c.yields and thorough:
             # The constants first, the support held at its screened knee: moved together, a constant
@@ -590,18 +592,18 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             # the fit with the support free goes on from there, which takes fewer steps in all.)
             held = Coordinates(c.coordinates.theta(c.x), flags(support=False))
             x_held, held_convergence = refine(
-                c.law, held, held.initial(), f"calibrate {c.name}, refined with the support held",
+                c.law, held, held.initial(), f"calibrate {label}, refined with the support held",
                 screen_tolerance if by_gauss_newton else settings.tolerance,
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
         loss = problem(c.law, chunks, c.coordinates).loss
         x_start = x
-        x, convergence = refine(c.law, c.coordinates, x, f"calibrate {c.name}, refined")
+        x, convergence = refine(c.law, c.coordinates, x, f"calibrate {label}, refined")
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
         restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
         if restart is not None:
-            x, again = refine(c.law, c.coordinates, restart, f"calibrate {c.name}, refined from the friction restart")
+            x, again = refine(c.law, c.coordinates, restart, f"calibrate {label}, refined from the friction restart")
             convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
             stalled = False
         if c.yields and thorough and stalled and held_convergence.converged:
@@ -610,9 +612,35 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             x, convergence = x_start, dataclasses.replace(
                 held_convergence, reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}"
             )
+        if not (required or convergence.converged):
+            return None
         require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
         score = criterion(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
-        refined.append(c._replace(score=score, x=x, convergence=convergence))
+        return c._replace(score=score, x=x, convergence=convergence)
+
+    def from_the_friction_grid(c: Candidate, fit: Candidate) -> Candidate:
+        """`fit`, or the candidate refined from the restart grid's friction pair that lowers the loss on all
+        records at its screened fit, where that ends lower (`training.friction_start: both`)."""
+        loss = problem(c.law, chunks, c.coordinates).loss
+        start = friction_restart(loss, c.coordinates.names, c.x, loss(c.x), stream)
+        other = None if start is None else refine_finalist(
+            c._replace(x=start), f"{c.name} from the friction grid", required=False)
+        kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        print(f"[friction start] {c.name}: "
+              + ("no pair of the grid lowers the screened fit's loss" if start is None else
+                 "the refinement from the grid's pair did not converge" if other is None else
+                 f"{other.convergence.final_loss:.7g} from the grid's pair against {fit.convergence.final_loss:.7g} "
+                 f"from the screened friction; kept: {'the grid' if kept is other else 'the screened'}'s "
+                 f"(mu {np.exp(kept.x[c.coordinates.names.index('mu')]):.3g})"),
+              file=stream, flush=True)
+        return kept
+
+    refined = []
+    for c in finalists:
+        fit = refine_finalist(c, c.name)
+        if spinning and settings.friction_start == "both":
+            fit = from_the_friction_grid(c, fit)
+        refined.append(fit)
     if thorough:
         refined = [support_restart(c, refined) for c in refined]
     refined.sort(key=lambda c: c.score)
