@@ -983,7 +983,13 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
     assert line[4] == ("grid" if grid < screened else "screened")
     calibration = yaml.safe_load(out.read_text())["training"]["calibration"]
     assert calibration["final_loss"] == pytest.approx(min(grid, screened), rel=1e-6)
+    recorded = next(r for r in calibration["friction_starts"] if r["law"] == line[1])
+    assert (recorded["kept"], recorded["grid_loss"], recorded["screened_loss"]) == (
+        line[4], pytest.approx(grid, rel=1e-6), pytest.approx(screened, rel=1e-6))
     assert yaml.safe_load(out.read_text())["contact"]["mu"] == pytest.approx(float(line[5]), rel=2e-3)
+    assert main(["report", str(out), "--config", str(rig), "-o", str(tmp_path / "report")]) == 0
+    report = (tmp_path / "report" / "training.md").read_text()
+    assert f"| {line[1]} | {screened:.7g} | {grid:.7g} | {line[4]} |" in report, report
 
 
 def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, capsys):

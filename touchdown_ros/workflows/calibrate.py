@@ -102,6 +102,8 @@ class Calibration:
     clearance_sd: dict[str, float] = dataclasses.field(default_factory=dict)  # m, posterior sd of r0 and z0
     # with a fitted Stribeck drop: the stage 1 without it whose process noise this one holds (`calibrate_stage1`)
     process_noise_pass: dict[str, Any] | None = None
+    # with `training.friction_start: both`: per refined law, both starts' final losses and which was kept
+    friction_starts: tuple[dict[str, Any], ...] = ()
 
     def clearance_changes(self) -> dict[str, float]:
         """m, the calibrated r0 and z0 minus the rig YAML's (empty where they were not fitted)."""
@@ -130,6 +132,7 @@ class Calibration:
             "candidates": list(self.candidates),
             **({"friction_models": list(self.frictions)} if self.frictions else {}),
             **({"process_noise_pass": self.process_noise_pass} if self.process_noise_pass else {}),
+            **({"friction_starts": list(self.friction_starts)} if self.friction_starts else {}),
             "notes": self.notes(),
             **self.convergence.as_dict(),
         }
@@ -626,6 +629,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         other = None if start is None else refine_finalist(
             c._replace(x=start), f"{c.name} from the friction grid", required=False)
         kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        friction_starts.append({
+            "law": c.name, "screened_loss": float(fit.convergence.final_loss),
+            "grid_loss": None if other is None else float(other.convergence.final_loss),
+            "kept": "grid" if kept is other else "screened",
+        })
         print(f"[friction start] {c.name}: "
               + ("no pair of the grid lowers the screened fit's loss" if start is None else
                  "the refinement from the grid's pair did not converge" if other is None else
@@ -635,7 +643,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
               file=stream, flush=True)
         return kept
 
-    refined = []
+    refined, friction_starts = [], []
     for c in finalists:
         fit = refine_finalist(c, c.name)
         if spinning and settings.friction_start == "both":
@@ -709,6 +717,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         candidates=candidates,
         sensor_noise=sigma,
         criterion=best.score,
+        friction_starts=tuple(friction_starts),
     )
 
 

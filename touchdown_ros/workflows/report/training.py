@@ -131,6 +131,12 @@ def _stage1_lines(calibration: Mapping[str, Any], document: Mapping[str, Any]) -
         lines += _table(["friction", "law", "loss", "criterion above the best", "s"],
                         [[f.get("friction"), f.get("law"), f.get("loss"), f.get("criterion_above_best"),
                           f.get("seconds")] for f in frictions])
+    starts = calibration.get("friction_starts") or []
+    if starts:
+        lines += ["", "Friction starts (`training.friction_start: both`; final loss per sample):", ""]
+        lines += _table(["law", "from the screened friction", "from the grid's pair", "kept"],
+                        [[s.get("law"), _number(s.get("screened_loss"), 7), _number(s.get("grid_loss"), 7),
+                          s.get("kept")] for s in starts])
     plain = calibration.get("process_noise_pass")
     if plain:
         lines += ["", f"The process noise comes from a stage 1 without the Stribeck drop ({plain.get('law')}): "
