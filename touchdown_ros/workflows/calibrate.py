@@ -629,16 +629,17 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         other = None if start is None else refine_finalist(
             c._replace(x=start), f"{c.name} from the friction grid", required=False)
         kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        which = "grid" if kept is other else "screened"
         friction_starts.append({
             "law": c.name, "screened_loss": float(fit.convergence.final_loss),
             "grid_loss": None if other is None else float(other.convergence.final_loss),
-            "kept": "grid" if kept is other else "screened",
+            "kept": which,
         })
         print(f"[friction start] {c.name}: "
               + ("no pair of the grid lowers the screened fit's loss" if start is None else
                  "the refinement from the grid's pair did not converge" if other is None else
                  f"{other.convergence.final_loss:.7g} from the grid's pair against {fit.convergence.final_loss:.7g} "
-                 f"from the screened friction; kept: {'the grid' if kept is other else 'the screened'}'s "
+                 f"from the screened friction; kept: the {which}'s "
                  f"(mu {np.exp(kept.x[c.coordinates.names.index('mu')]):.3g})"),
               file=stream, flush=True)
         return kept
