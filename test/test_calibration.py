@@ -990,6 +990,14 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
     assert main(["report", str(out), "--config", str(rig), "-o", str(tmp_path / "report")]) == 0
     report = (tmp_path / "report" / "training.md").read_text()
     assert f"| {line[1]} | {screened:.7g} | {grid:.7g} | {line[4]} |" in report, report
+    alone = tmp_path / "screened.yaml"  # the default (the screened start alone) takes the same path: that line's fit
+    assert main(["train", str(bags[0]), "--config", str(rig), "-p", "contact.friction:=spinning_ring",
+                 "--steps", "0", "-o", str(alone)]) == 0
+    assert "[friction start]" not in "".join(capsys.readouterr())
+    screened_alone = yaml.safe_load(alone.read_text())["training"]["calibration"]
+    refined = {c["law"]: c.get("refined_loss") for c in screened_alone["candidates"]}
+    assert refined[line[1]] == pytest.approx(screened, rel=1e-6), refined
+    assert "friction_starts" not in screened_alone
 
 
 def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, capsys):
