@@ -627,7 +627,8 @@ def test_config_reads_the_axial_support():
 
 
 def test_standard_errors_of_a_known_information():
-    """The information C^-1 gives C back; a direction the data do not inform is held by its prior alone."""
+    """The information C^-1 gives C back; a direction the data do not inform is held by its prior alone; an
+    information that is not finite gives no standard errors."""
     covariance = np.array([[0.04, 0.018], [0.018, 0.01]])
     sd, correlation = information_standard_errors(np.linalg.inv(covariance))
     np.testing.assert_allclose(sd, [0.2, 0.1], rtol=1e-12)
@@ -635,6 +636,9 @@ def test_standard_errors_of_a_known_information():
     assert strongest_correlations(["a", "b"], correlation) == [("a", "b", pytest.approx(0.9))]
     sd, _ = information_standard_errors(np.diag([1.0 / 0.04, 0.0]), prior_sd=np.array([np.inf, 1.6]))
     np.testing.assert_allclose(sd, [0.2, 1.6], rtol=1e-9)
+    # where the filter diverged the information is not finite: no standard errors, no "Eigenvalues did not converge"
+    sd, _ = information_standard_errors(np.array([[np.nan, 0.0], [0.0, 1.0]]), prior_sd=np.array([1.0, 1.0]))
+    assert np.isnan(sd).all()
 
 
 def test_stage1_scales_move_each_effect_by_the_rotor_weight_where_it_acts():

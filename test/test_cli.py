@@ -358,6 +358,34 @@ def test_diagnose_takes_the_fits_the_step_cap_stopped_on_to_convergence(drop_bag
     assert other.convergence.steps == 3 and not other.convergence.converged, other.convergence
 
 
+def test_diagnose_ranks_last_a_candidate_whose_filter_diverges_from_its_start_and_goes_on(drop_bags):
+    """A candidate started where its filter diverges (a contact exponent's force of 1e12 N at 10 um: the loss is not
+    finite) has no curvature for standard errors. diagnose stopped there on "Eigenvalues did not converge"; it now
+    says so, gives the candidate no standard errors and no per-bag fits, ranks it last, and fits the others."""
+    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates, fitted_verdict, ranked
+    from touchdown_ros.workflows.optimise import DIVERGED_LOSS
+    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
+
+    data = load_training_data(CONFIG, [drop_bags / "exp_01", drop_bags / "exp_11"])
+    data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
+    stream = io.StringIO()
+    selection = fit_candidates(
+        CONFIG, CONFIG.model(), data, ["contact_exponent", "axial_load"],
+        FitSettings(steps=3, per_bag=2, from_best=0, to_convergence=0), stream,
+        starts={"contact_exponent": {"K": 1.0e12, "n": 1.5}},
+    )
+    log = stream.getvalue()
+    assert "[fit contact_exponent] its filter diverged from the start" in log, log
+    best, diverged = ranked(selection)
+    assert (best.name, diverged.name) == ("axial_load", "contact_exponent")
+    assert diverged.convergence.final_loss >= DIVERGED_LOSS and np.isnan(list(diverged.sd.values())).all()
+    assert np.isfinite(list(best.sd.values())).all() and best.convergence.final_loss < DIVERGED_LOSS
+    assert diverged.per_bag == {} and sorted(best.per_bag) == ["exp_01", "exp_11"]
+    frols = {"candidates": [{"candidate": n, "err_percent": 1.0} for n in ("axial_load", "contact_exponent")],
+             "text": ""}
+    assert [row["candidate"] for row in fitted_verdict(frols, selection)["candidates"]] == [best.name, diverged.name]
+
+
 def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):
     """The coefficient file `train` writes (with the paper's friction, whose programs compile in half the ring's
     time) drives `estimate`, and a rig YAML it was not trained for is refused."""

@@ -653,9 +653,12 @@ def stage1_gauss_newton_over(
 def posterior_covariance(information: np.ndarray, prior_sd: np.ndarray | None = None) -> np.ndarray:
     """Posterior covariance of stage-1 coordinates: the inverse of the data's information
     (`stage1_information`, or N H / 2 of J's data part) plus the prior's precision, diag(1 / prior_sd^2)
-    (inf: no prior)."""
+    (inf: no prior). All NaN where the information is not finite (a fit whose filter diverged)."""
     prior = np.zeros(len(information)) if prior_sd is None else 1.0 / np.asarray(prior_sd, dtype=float) ** 2
-    return np.linalg.pinv(0.5 * (information + information.T) + np.diag(prior), hermitian=True)
+    precision = 0.5 * (information + information.T) + np.diag(prior)
+    if not np.all(np.isfinite(precision)):
+        return np.full(precision.shape, np.nan)
+    return np.linalg.pinv(precision, hermitian=True)
 
 
 def information_standard_errors(

@@ -22,6 +22,7 @@ t-test at 5 %); else the criterion's order stands.
 """
 from __future__ import annotations
 
+import math
 from typing import Mapping, NamedTuple, Sequence
 
 import jax
@@ -243,6 +244,11 @@ def phase_tests(first: Judged, second: Judged, significance: float = PHASE_SIGNI
     return sorted(tests, key=lambda test: -abs(test.t))
 
 
+def by_criterion(judged: Sequence[Judged]) -> list[Judged]:
+    """Lowest criterion first; one that is not a number (a fit whose filter diverged) last."""
+    return sorted(judged, key=lambda j: (not math.isfinite(j.criterion), j.criterion))
+
+
 def verdict(
     judged: Sequence[Judged],
     min_fall: float = MIN_K_STEP_FALL,
@@ -259,7 +265,7 @@ def verdict(
     effect does not); else the criterion's order stands. A candidate of lower criterion that fails the
     held-out tests does not hide one that passes them: it fits the bags by compensating something else,
     and is named beside the verdict."""
-    order = sorted(judged, key=lambda j: j.criterion)
+    order = by_criterion(judged)
     if not order:
         return {"explained": False, "best": None, "margin_to_second": float("nan"), "collinear": None,
                 "text": "unexplained: no candidate was fitted"}

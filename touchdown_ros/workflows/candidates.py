@@ -34,6 +34,7 @@ from touchdown_ros.core.selection import (
     Errors,
     Judged,
     SampleMeasures,
+    by_criterion,
     candidate_gates,
     contact_phases,
     errors_over,
@@ -50,7 +51,7 @@ from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.calibrate import HIGH_FRICTION, friction_above_any_bearings
-from touchdown_ros.workflows.optimise import Convergence, minimise
+from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
@@ -296,9 +297,15 @@ def _fit_candidates(
             phases = contact_phases(np.asarray(measures.states), config.contact_rig)
         fitted_rows = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
         values, sd = {}, {}
+        diverged = convergence.final_loss >= DIVERGED_LOSS
+        if diverged:
+            print(f"[fit {name}{label}] its filter diverged from the start (the loss is not finite there): no "
+                  "standard errors; it ranks last", file=stream, flush=True)
         if effect is not None:
             values = problem.physical(theta, effect.name)
-            sd = _effect_sd(problem, coordinates, x, batch, effect.name)
+            sd = dict.fromkeys(values, float("nan")) if diverged else _effect_sd(
+                problem, coordinates, x, batch, effect.name
+            )
         return CandidateFit(
             name=name,
             values=values,
@@ -373,7 +380,7 @@ def _fit_candidates(
             after, steps=before.steps + after.steps, initial_loss=before.initial_loss,
             history=before.history + after.history, seconds=before.seconds + after.seconds,
         )), theta)
-    for fit in ranked(selection)[: settings.per_bag]:
+    for fit in [f for f in ranked(selection) if f.convergence.final_loss < DIVERGED_LOSS][: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
             coordinates = Coordinates(
@@ -413,13 +420,13 @@ def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch
 
 
 def judged(selection: Selection) -> list[Judged]:
-    """Every candidate against the baseline, lowest criterion first."""
+    """Every candidate against the baseline, lowest criterion first (`core.selection.by_criterion`)."""
     base = selection.baseline
     rows = [
         judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters))
         for f in selection.fits[1:]
     ]
-    return sorted(rows, key=lambda j: j.criterion)
+    return by_criterion(rows)
 
 
 def ranked(selection: Selection) -> list[CandidateFit]:
