@@ -2,6 +2,7 @@
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -310,12 +311,14 @@ def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_besid
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 
 
-def test_diagnose_fits_every_candidate_again_from_the_rigs_friction_where_the_calibrated_one_is_above_a_bearings(
+def test_diagnose_fits_every_candidate_again_from_the_friction_grid_where_the_calibrated_one_is_above_a_bearings(
     drop_bags,
 ):
     """Where the calibrated mu is above any bearing contact's, the constants have likely taken up the missing
     effect, and the ranking made in their basin can put its candidate low (a hidden z gain was fourth): the
-    baseline and every candidate, not only the best by the criterion, are fitted again from the rig's friction."""
+    baseline and every candidate, not only the best by the criterion, are fitted again, each from the pair of
+    dry and boundary-lubricated frictions that lowers its own loss most (a hidden contact angle needs k_ZR 0.2
+    where the rig's guess has 0.05)."""
     from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
     from touchdown_ros.workflows.training_data import TrainingData, load_training_data
 
@@ -325,12 +328,14 @@ def test_diagnose_fits_every_candidate_again_from_the_rigs_friction_where_the_ca
     names = ["radial_load", "axial_load", "sensor_offset_x", "sensor_gain_z"]
     stream = io.StringIO()
     fit_candidates(config, config.model(), data, names,
-                   FitSettings(steps=3, per_bag=0, from_best=0, to_convergence=0, guess_friction=(0.1, 0.05)),
-                   stream)
+                   FitSettings(steps=3, per_bag=0, from_best=0, to_convergence=0, friction_grid=True), stream)
     log = stream.getvalue()
-    assert "every fit starts again from the rig's guess (mu 0.1, k_ZR 0.05)" in log, log
+    assert "every fit starts again from the pair of 0.05, 0.1, 0.2, 0.4 that lowers its loss most" in log, log
     for name in ["none", *names]:
-        assert f"[fit {name}, from the guess's friction step 0]" in log, (name, log)
+        lowest = re.findall(rf"\[fit {name}, friction grid\] mu \S+, k_ZR \S+ lower the loss to (\S+)", log)
+        alone = "" if name == "none" else " alone"
+        start = re.search(rf"\[fit {name}{alone}, from the friction grid step 0\] loss (\S+)", log)
+        assert lowest and start and start.group(1) == lowest[-1], (name, log)
 
 
 def test_diagnose_takes_the_fits_the_step_cap_stopped_on_to_convergence(drop_bags):

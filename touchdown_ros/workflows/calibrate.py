@@ -1002,10 +1002,12 @@ FRICTION_RESTART_VALUES = (LOW_FRICTION, 0.1, 0.2, 0.4)
 
 
 def friction_restart(
-    loss_of: Callable[[np.ndarray], float], names: Sequence[str], x: np.ndarray, loss: float, stream
+    loss_of: Callable[[np.ndarray], float], names: Sequence[str], x: np.ndarray, loss: float, stream,
+    label: str = "friction restart",
 ) -> np.ndarray | None:
     """x (where the loss is `loss`) with mu and k_ZR set to the pair of `FRICTION_RESTART_VALUES`
-    that lowers the loss most (the free coordinates are logarithms); None if none lowers it."""
+    that lowers the loss most (the free coordinates are logarithms); None if none lowers it. Each pair
+    that lowers it is printed on `stream` after `label`."""
     best, best_loss = x, loss
     for mu in FRICTION_RESTART_VALUES:
         for k_ZR in FRICTION_RESTART_VALUES:
@@ -1014,7 +1016,7 @@ def friction_restart(
             trial_loss = loss_of(trial)
             if trial_loss < best_loss:
                 best, best_loss = trial, trial_loss
-                print(f"[friction restart] mu {mu:g}, k_ZR {k_ZR:g} lower the loss to {trial_loss:.7g}", file=stream)
+                print(f"[{label}] mu {mu:g}, k_ZR {k_ZR:g} lower the loss to {trial_loss:.7g}", file=stream)
     return None if best is x else best
 
 

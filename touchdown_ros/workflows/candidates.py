@@ -50,7 +50,12 @@ from touchdown_ros.core.training import Batch, hold_out, make_batch
 from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
-from touchdown_ros.workflows.calibrate import HIGH_FRICTION, friction_above_any_bearings
+from touchdown_ros.workflows.calibrate import (
+    FRICTION_RESTART_VALUES,
+    HIGH_FRICTION,
+    friction_above_any_bearings,
+    friction_restart,
+)
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
@@ -80,9 +85,9 @@ class FitSettings:
     # `converge_steps` more: their sizes and the criterion are the optimum's, not the cap's
     to_convergence: int = 3
     converge_steps: int = 200
-    # the rig YAML's (mu, k_ZR): where the calibrated friction is above HIGH_FRICTION, the baseline and every
-    # candidate are fitted again from it (None: never)
-    guess_friction: tuple[float, float] | None = None
+    # where the calibrated friction is above HIGH_FRICTION, the baseline and every candidate are fitted again from
+    # the pair of dry and boundary-lubricated frictions that lowers its loss most (`calibrate.friction_restart`)
+    friction_grid: bool = False
 
 
 @dataclass
@@ -239,14 +244,14 @@ def fit_candidates(
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
     factors and the model's own effects, from the calibrated values of `config` (the coefficient
     file's or the YAML's), on the records' fitted samples; measure each on the held-out samples; where the
-    calibrated friction is above any bearing's, fit each again from `settings.guess_friction`, keeping the
-    lower loss; fit the baseline and the `settings.from_best` next candidates again from the best one's
-    constants, keeping the lower loss; where the step cap stopped the baseline or one of the
-    `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best (by
-    the criterion) again bag by bag, their constants kept. The measures' and standard errors' programs
-    compile in a background thread while the baseline's fit compiles the loss's (`Ahead`). A speed
-    candidate starts where `starts` puts it (default: where its speed fits the records' orbits,
-    `core.orbit.candidate_starts`)."""
+    calibrated friction is above any bearing's (and `settings.friction_grid`), fit each again from the pair of
+    `calibrate.FRICTION_RESTART_VALUES` that lowers its loss most, keeping the lower loss; fit the baseline
+    and the `settings.from_best` next candidates again from the best one's constants, keeping the lower loss;
+    where the step cap stopped the baseline or one of the `settings.to_convergence` best, go on from there to
+    convergence; fit the `settings.per_bag` best (by the criterion) again bag by bag, their constants kept. The
+    measures' and standard errors' programs compile in a background thread while the baseline's fit compiles
+    the loss's (`Ahead`). A speed candidate starts where `starts` puts it (default: where its speed fits the
+    records' orbits, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:
@@ -346,18 +351,28 @@ def _fit_candidates(
     # A friction above any bearing contact's has likely taken up part of the missing effect (with a spinning
     # ring the bore's friction against axial sliding acts as an axial force in radial contact: a hidden
     # contact angle gave mu 1.49, and its candidate's fit stayed there). So where the calibrated friction is
-    # that high, the baseline and every candidate start once more with the rig YAML's friction, the other
-    # constants as they fitted; the lower loss is kept. Every one: in the constants' basin the missing effect's
-    # own candidate can rank low (a hidden z gain: 1.001 for 1.05 there, fourth by the criterion, behind the
-    # three that used to start again; from the rig's friction 1.050, 0.20 per sample lower).
+    # that high, the baseline and every candidate start once more from the pair (mu, k_ZR) of a dry or
+    # boundary-lubricated contact that lowers its loss most, the other constants as they fitted; the lower loss
+    # is kept. Every one: in the constants' basin the missing effect's own candidate can rank low (a hidden z
+    # gain: 1.001 for 1.05 there, fourth by the criterion, behind the three that used to start again; from the
+    # rig's friction 1.050, 0.20 per sample lower). The grid, not the rig's guess alone: from the guess's k_ZR
+    # (0.05) a hidden contact angle's fit ended 0.11 per sample above its first, from the grid's 0.2 0.026 below
+    # it, sized +1 % where the first was +11 % (docs/workbench.md, "The refit from the friction grid").
     nominal = config.nominal
-    if settings.guess_friction is not None and friction_above_any_bearings(nominal):
+    if settings.friction_grid and friction_above_any_bearings(nominal):
         print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
-              f"any bearing contact's ({HIGH_FRICTION:g}): every fit starts again from the rig's guess "
-              f"(mu {settings.guess_friction[0]:g}, k_ZR {settings.guess_friction[1]:g})", file=stream, flush=True)
+              f"any bearing contact's ({HIGH_FRICTION:g}): every fit starts again from the pair of "
+              f"{', '.join(f'{v:g}' for v in FRICTION_RESTART_VALUES)} that lowers its loss most",
+              file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)]:
-            start = with_friction_coefficients(thetas[first.name], *settings.guess_friction)
-            keep_lower(first, start, "the guess's friction", restarts=FRICTION_START_RESTARTS)
+            chosen, effect = slots[first.name]
+            coordinates = Coordinates(
+                thetas[first.name], problem.flags([*model.effects.names, *([effect.name] if effect else [])])
+            )
+            objective = problem.objective(coordinates, problem.gated(chosen))
+            x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
+                                 stream, label=f"fit {first.name}, friction grid")
+            keep_lower(first, coordinates.theta(x), "the friction grid", restarts=FRICTION_START_RESTARTS)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
     # while another, started alike, leaves it. So the baseline and the runners-up start once more
@@ -396,13 +411,6 @@ def _fit_candidates(
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
-
-
-def with_friction_coefficients(theta: Stage1, mu: float, k_ZR: float) -> Stage1:
-    """theta with ln mu and ln k_ZR set to these (the other coordinates kept)."""
-    log_f0 = np.array(theta.log_f0, dtype=float)
-    log_f0[[PARAMETER_NAMES.index("mu"), PARAMETER_NAMES.index("k_ZR")]] = np.log([mu, k_ZR])
-    return theta._replace(log_f0=log_f0)
 
 
 def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str) -> dict[str, float]:

@@ -188,7 +188,6 @@ def diagnose(
     """Estimate every bag with one model and compute all the diagnostics."""
     coeffs = effects = None
     calibration_notes: list[str] = []
-    guess = config.nominal  # the rig YAML's (a coefficient file replaces it by its calibrated constants)
     if coefficient_file is not None:
         loaded = load_coefficients(coefficient_file, config)
         coeffs, effects, config = loaded.coeffs, loaded.effects, loaded.config(config)
@@ -258,7 +257,7 @@ def diagnose(
         )
         selection = fit_candidates(
             config, estimator.model, load_training_data(config, bags), names,
-            FitSettings(k=settings.k, guess_friction=(float(guess.mu), float(guess.k_ZR))), stream, starts,
+            FitSettings(k=settings.k, friction_grid=True), stream, starts,
         )
         verdict = fitted_verdict(verdict, selection)
     missing_signature = signature(
