@@ -366,21 +366,25 @@ def test_diagnose_takes_the_fits_the_step_cap_stopped_on_to_convergence(drop_bag
 def test_diagnose_ranks_last_a_candidate_whose_filter_diverges_from_its_start_and_goes_on(drop_bags):
     """A candidate started where its filter diverges (a contact exponent's force of 1e12 N at 10 um: the loss is not
     finite) has no curvature for standard errors. diagnose stopped there on "Eigenvalues did not converge"; it now
-    says so, gives the candidate no standard errors and no per-bag fits, ranks it last, and fits the others."""
+    says so, gives the candidate no standard errors and no per-bag fits, ranks it last, and fits the others. With a
+    calibrated friction above any bearing's its loss is not a number at any pair of the friction grid either: it is
+    not refitted."""
     from touchdown_ros.workflows.candidates import FitSettings, fit_candidates, fitted_verdict, ranked
     from touchdown_ros.workflows.optimise import DIVERGED_LOSS
     from touchdown_ros.workflows.training_data import TrainingData, load_training_data
 
-    data = load_training_data(CONFIG, [drop_bags / "exp_01", drop_bags / "exp_11"])
+    config = load_config(None, {"contact.mu": 1.0})
+    data = load_training_data(config, [drop_bags / "exp_01", drop_bags / "exp_11"])
     data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
     stream = io.StringIO()
     selection = fit_candidates(
-        CONFIG, CONFIG.model(), data, ["contact_exponent", "axial_load"],
-        FitSettings(steps=3, per_bag=2, from_best=0, to_convergence=0), stream,
+        config, config.model(), data, ["contact_exponent", "axial_load"],
+        FitSettings(steps=3, per_bag=2, from_best=0, to_convergence=0, friction_grid=True), stream,
         starts={"contact_exponent": {"K": 1.0e12, "n": 1.5}},
     )
     log = stream.getvalue()
     assert "[fit contact_exponent] its filter diverged from the start" in log, log
+    assert "[fit axial_load, from the friction grid" in log and "[fit contact_exponent, from the friction" not in log
     best, diverged = ranked(selection)
     assert (best.name, diverged.name) == ("axial_load", "contact_exponent")
     assert diverged.convergence.final_loss >= DIVERGED_LOSS and np.isnan(list(diverged.sd.values())).all()

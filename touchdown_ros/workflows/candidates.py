@@ -372,7 +372,8 @@ def _fit_candidates(
             objective = problem.objective(coordinates, problem.gated(chosen))
             x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
                                  stream, label=f"fit {first.name}, friction grid")
-            keep_lower(first, coordinates.theta(x), "the friction grid", restarts=FRICTION_START_RESTARTS)
+            if x is not None:  # None: the loss is not a number at any pair
+                keep_lower(first, coordinates.theta(x), "the friction grid", restarts=FRICTION_START_RESTARTS)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
     # while another, started alike, leaves it. So the baseline and the runners-up start once more
