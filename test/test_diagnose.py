@@ -320,9 +320,9 @@ def test_a_contact_angle_a_spinning_rings_friction_took_up_is_found_from_the_rig
     Against a spinning ring the bore's friction opposes axial sliding, so stage 1 can let a large mu act as
     the axial force a hidden contact angle makes in radial contact (mu 1.49 on these drops); train's note says
     the friction is above any bearing contact's, and diagnose's fits start again from a bearing's friction (the
-    rig YAML's until 2026-12-04, the friction grid's best pair since): the contact angle is named well ahead, sized within 10 % with a bearing's mu, and lowers the
-    z error (2026-11-28: 242.6 ahead, +1.2 %, mu 0.22, z 0.80x; from the calibrated friction alone mu 1.44,
-    49.2 ahead, z 0.87x)."""
+    rig YAML's until 2026-12-04, the friction grid's best pair since): the contact angle is named well ahead,
+    sized within 10 % with a bearing's mu, and lowers the z error (2026-11-28: 242.6 ahead, +1.2 %, mu 0.22, z
+    0.80x; from the calibrated friction alone mu 1.44, 49.2 ahead, z 0.87x)."""
     from touchdown_ros.workflows.calibrate import HIGH_FRICTION
 
     bags, rig, calibrated, verdict = _named_and_sized("contact angle", tmp_path)
