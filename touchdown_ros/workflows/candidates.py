@@ -156,16 +156,17 @@ class _Problem:
         self.tangents = (len(PARAMETER_NAMES) + len(Q_NAMES) + len(CLEARANCE_NAMES) + own
                          + max([len(c.parameters) for c in candidates] or [0]))
 
-    def flags(self, fitted_effects: Sequence[str]) -> Stage1:
-        """A full fit's free coordinates: f0, the Q factors, the clearances and the named effects."""
+    def flags(self, candidate: str | None = None) -> Stage1:
+        """A full fit's free coordinates: f0, the Q factors, the clearances, the model's own effects and
+        `candidate`'s parameters (None: the baseline)."""
+        fitted_effects = [*self.own_effects, *([candidate] if candidate else [])]
         return stage1_flags(self.effects, True, fitted_effects=fitted_effects, fit_clearances=self.fit_clearances)
 
     def compile_ahead(self) -> None:
         """Queue the measures' and the standard errors' programs in `self.ahead`, with arguments of the
         types `evaluate` and `information` pass: they compile beside the baseline's fit, which compiles
         the loss's."""
-        baseline = self.flags(self.own_effects)
-        coordinates = Coordinates(self.start, baseline)
+        coordinates = Coordinates(self.start, self.flags())
         theta = coordinates.theta(coordinates.initial())
         batch, h = self.gated(None), self.config.sample_period
         model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
@@ -277,7 +278,6 @@ def _fit_candidates(
         measure it; the fit and its coordinates."""
         nonlocal phases
         chosen, effect = slots[name]
-        fitted_effects = [*model.effects.names, *([effect.name] if effect else [])]
         batch = problem.gated(chosen)
         if effect is not None and alone:
             # The candidate alone first, the model held: moved together from the start, the constants'
@@ -289,7 +289,7 @@ def _fit_candidates(
                 f"fit {name} alone{label}", stream, bounds=alone.bounds(problem.scales),
             )
             start = alone.theta(x)
-        coordinates = Coordinates(start, problem.flags(fitted_effects))
+        coordinates = Coordinates(start, problem.flags(None if effect is None else name))
         objective = problem.objective(coordinates, batch)
         x, convergence = minimise(
             objective, coordinates.initial(), steps or settings.steps, settings.tolerance, f"fit {name}{label}",
@@ -366,9 +366,7 @@ def _fit_candidates(
               file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)]:
             chosen, effect = slots[first.name]
-            coordinates = Coordinates(
-                thetas[first.name], problem.flags([*model.effects.names, *([effect.name] if effect else [])])
-            )
+            coordinates = Coordinates(thetas[first.name], problem.flags(None if effect is None else first.name))
             objective = problem.objective(coordinates, problem.gated(chosen))
             x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
                                  stream, label=f"fit {first.name}, friction grid")
