@@ -3,6 +3,7 @@ from displacement-only bags (core.calibration), with standard errors from the lo
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple, Sequence
@@ -379,6 +380,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             text += "  " + "  ".join(f"{n} {np.exp(c):.3g}" for n, c in zip(STRIBECK_NAMES, x[end:]))
         return text
 
+    def bounds_of(coordinates: Coordinates) -> list[tuple[float, float]]:
+        """The coordinates' bounds, the friction's below `training.friction_ceiling`."""
+        return friction_capped(coordinates.bounds(scales), coordinates.names, settings.friction_ceiling)
+
     newton_terms: dict[tuple, Any] = {}  # Gauss-Newton's terms on all records by (law, coordinates, x)
 
     def problem(
@@ -402,7 +407,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     ) -> tuple[np.ndarray, Convergence]:
         """`law` with `coordinates` fitted on all records from x (`training.refinement`: `gauss_newton`, or
         `minimise`'s L-BFGS)."""
-        refined, bounds = problem(law, chunks, coordinates), coordinates.bounds(scales)
+        refined, bounds = problem(law, chunks, coordinates), bounds_of(coordinates)
         if not by_gauss_newton:
             return minimise(refined.objective, x, settings.calibration_steps, tolerance, label, stream, describe,
                             bounds=bounds)
@@ -451,7 +456,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         x0 = min((with_support_at(with_support, theta_rigid, s) for s in starts), key=supported.loss)
         x, convergence = minimise(
             supported.objective, x0, settings.calibration_steps, tolerance, label, stream, describe,
-            bounds=with_support.bounds(scales),
+            bounds=bounds_of(with_support),
         )
         return with_support, x, convergence
 
@@ -478,7 +483,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         objective, loss, x0, _ = problem(law, (screen_batch,), screened=True)
         x, convergence = minimise(
             objective, x0, settings.calibration_steps, screen_tolerance, f"calibrate {law.label}", stream, describe,
-            bounds=coordinates.bounds(scales),
+            bounds=bounds_of(coordinates),
         )
         if convergence.initial_loss >= DIVERGED_LOSS:
             model0, noise0 = stage1_model_and_noise(
@@ -496,7 +501,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         if restart is not None:
             x, again = minimise(
                 objective, restart, settings.calibration_steps, screen_tolerance,
-                f"calibrate {law.label}, restarted", stream, describe, bounds=coordinates.bounds(scales),
+                f"calibrate {law.label}, restarted", stream, describe, bounds=bounds_of(coordinates),
             )
             convergence = after_restart(convergence, again, "damping", settings.calibration_steps)
         if settings.axial_support != "yielding":
@@ -792,6 +797,20 @@ LOW_FRICTION = 0.05
 #: clean unlubricated steel at up to about 0.5-0.6. Stage 1 fits it there when the friction takes the part of
 #: a force the model lacks (`Calibration.friction_note`).
 HIGH_FRICTION = 0.5
+
+
+#: The friction coefficients among the stage-1 coordinates' names (`training.friction_ceiling` caps them).
+FRICTION_NAMES = ("mu", "k_ZR")
+
+
+def friction_capped(
+    bounds: Sequence[tuple[float, float]], names: Sequence[str], ceiling: float | None
+) -> list[tuple[float, float]]:
+    """`bounds` of the coordinates `names` with ln mu and ln k_ZR at most ln `ceiling` (None: as they are)."""
+    if ceiling is None:
+        return list(bounds)
+    top = math.log(ceiling)
+    return [(low, min(high, top) if name in FRICTION_NAMES else high) for (low, high), name in zip(bounds, names)]
 
 
 def largest_friction(nominal: Nominal) -> float:

@@ -54,6 +54,7 @@ from touchdown_ros.workflows.calibrate import (
     FRICTION_RESTART_VALUES,
     HIGH_FRICTION,
     friction_above_any_bearings,
+    friction_capped,
     friction_restart,
 )
 from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, minimise
@@ -192,6 +193,11 @@ class _Problem:
             batch = batch._replace(valid=batch.valid & (jnp.arange(batch.valid.shape[0]) == record)[:, None])
         return batch
 
+    def bounds(self, coordinates: Coordinates) -> list[tuple[float, float]]:
+        """The coordinates' bounds, the friction's below `training.friction_ceiling` as in stage 1."""
+        ceiling = self.config.training.friction_ceiling
+        return friction_capped(coordinates.bounds(self.scales), coordinates.names, ceiling)
+
     def objective(self, coordinates: Coordinates, batch: Batch):
         placed = place(batch, self.mesh)
         settings = self.config.training
@@ -286,14 +292,14 @@ def _fit_candidates(
             alone = Coordinates(start, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[name]))
             x, _ = minimise(
                 problem.objective(alone, batch), alone.initial(), settings.steps, settings.tolerance,
-                f"fit {name} alone{label}", stream, bounds=alone.bounds(problem.scales),
+                f"fit {name} alone{label}", stream, bounds=problem.bounds(alone),
             )
             start = alone.theta(x)
         coordinates = Coordinates(start, problem.flags(None if effect is None else name))
         objective = problem.objective(coordinates, batch)
         x, convergence = minimise(
             objective, coordinates.initial(), steps or settings.steps, settings.tolerance, f"fit {name}{label}",
-            stream, bounds=coordinates.bounds(problem.scales), restarts=restarts,
+            stream, bounds=problem.bounds(coordinates), restarts=restarts,
         )
         theta = coordinates.theta(x)
         measures = problem.evaluate(theta, batch)
@@ -404,7 +410,7 @@ def _fit_candidates(
             objective = problem.objective(coordinates, batch)
             x, _ = minimise(
                 objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}",
-                stream, bounds=coordinates.bounds(problem.scales),
+                stream, bounds=problem.bounds(coordinates),
             )
             sd = _effect_sd(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
