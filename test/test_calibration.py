@@ -1004,6 +1004,32 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
     assert "friction_starts" not in screened_alone
 
 
+def test_a_friction_ceiling_holds_stage_1s_friction_at_most_it_and_says_so(tmp_path, soft_rig, capsys):
+    """`training.friction_ceiling`: stage 1 fits mu and k_ZR at most the ceiling. Set at half of what the drop fits
+    unbounded, the fit ends held at it, and the file's notes say so; a ceiling not above zero is refused."""
+    from touchdown_ros.io.config import ConfigError, load_config
+
+    assert load_config().training.friction_ceiling is None
+    with pytest.raises(ConfigError, match="training.friction_ceiling"):
+        load_config(overrides={"training.friction_ceiling": 0.0})
+    v, rig = soft_rig
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=6)
+    train = ["train", str(bags[0]), "--config", str(rig), "-p", "contact.friction:=spinning_ring", "--steps", "0"]
+    free, held = tmp_path / "free.yaml", tmp_path / "held.yaml"
+    assert main([*train, "-o", str(free)]) == 0
+    unbounded = yaml.safe_load(free.read_text())["contact"]
+    ceiling = 0.5 * max(unbounded["mu"], unbounded["k_ZR"])
+    assert main([*train, "-p", f"training.friction_ceiling:={ceiling}", "-o", str(held)]) == 0
+    capsys.readouterr()
+    written = yaml.safe_load(held.read_text())
+    frictions = [written["contact"]["mu"], written["contact"]["k_ZR"]]
+    assert max(frictions) == pytest.approx(ceiling, rel=1e-6) and min(frictions) <= ceiling * (1 + 1e-9), frictions
+    notes = written["training"]["calibration"]["notes"]
+    assert any(f"held at training.friction_ceiling ({ceiling:g})" in note for note in notes), notes
+    assert not any("friction_ceiling" in note for note in yaml.safe_load(free.read_text())["training"]["calibration"]
+                   ["notes"])
+
+
 def test_train_resume_goes_on_where_the_lambda_path_stopped(tmp_path, soft_rig, capsys):
     """Stage 2 stopped by its step cap in its second lambda: `--resume` keeps stage 1 and the finished
     lambda (not fitted again), continues the interrupted one and cleans up beside the output."""

@@ -165,11 +165,19 @@ class Calibration:
         )
 
     def friction_note(self) -> str | None:
-        """Where the friction came out above any bearing contact's (`HIGH_FRICTION`), that it has likely taken
-        up a force the model lacks and how to find it; where the paper's friction (the inner ring at rest) came
-        out at hardly any, that a freely turning inner ring is the likelier reading and the setting that models
-        it; None otherwise."""
+        """Where the friction came out at `training.friction_ceiling`, that a missing force likely pushed it there;
+        where above any bearing contact's (`HIGH_FRICTION`), that it has likely taken up a force the model lacks
+        and how to find it; where the paper's friction (the inner ring at rest) came out at hardly any, that a
+        freely turning inner ring is the likelier reading and the setting that models it; None otherwise."""
         nominal = self.config.nominal
+        ceiling = self.config.training.friction_ceiling
+        if ceiling is not None and largest_friction(nominal) >= ceiling * (1.0 - 1.0e-6):
+            return (
+                f"friction: mu {float(nominal.mu):.2g} and k_ZR {float(nominal.k_ZR):.2g}, held at "
+                f"training.friction_ceiling ({ceiling:g}): the fit would have gone higher, so a force the model lacks "
+                "has likely pushed it there; `touchdown diagnose BAGS --coeffs FILE` (with the same ceiling) names "
+                "such an effect"
+            )
         if friction_above_any_bearings(nominal):
             bore = (" (against a spinning ring the bore's friction opposes axial sliding, so a large mu acts as an "
                     "axial force in radial contact, as a contact angle or an axial thrust would)"
