@@ -54,6 +54,7 @@ from touchdown_ros.workflows.calibrate import (
     FRICTION_RESTART_VALUES,
     HIGH_FRICTION,
     friction_above_any_bearings,
+    friction_at_ceiling,
     friction_capped,
     friction_restart,
 )
@@ -364,10 +365,14 @@ def _fit_candidates(
     # rig's friction 1.050, 0.20 per sample lower). The grid, not the rig's guess alone: from the guess's k_ZR
     # (0.05) a hidden contact angle's fit ended 0.11 per sample above its first, from the grid's 0.2 0.026 below
     # it, sized +1 % where the first was +11 % (docs/workbench.md, "The refit from the friction grid").
-    nominal = config.nominal
-    if settings.friction_grid and friction_above_any_bearings(nominal):
-        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is above "
-              f"any bearing contact's ({HIGH_FRICTION:g}): every fit starts again from the pair of "
+    # Held at `training.friction_ceiling` it has likely done the same, as far as the ceiling let it (a hidden z gain:
+    # stage 1 at mu 0.496 under 0.5 and the gain's fit at 1.000 for 1.05).
+    nominal, ceiling = config.nominal, config.training.friction_ceiling
+    if settings.friction_grid and (friction_above_any_bearings(nominal) or friction_at_ceiling(nominal, ceiling)):
+        where = (f"at training.friction_ceiling ({ceiling:g})" if friction_at_ceiling(nominal, ceiling)
+                 else f"above any bearing contact's ({HIGH_FRICTION:g})")
+        print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is "
+              f"{where}: every fit starts again from the pair of "
               f"{', '.join(f'{v:g}' for v in FRICTION_RESTART_VALUES)} that lowers its loss most",
               file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)]:
