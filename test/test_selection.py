@@ -172,6 +172,21 @@ def test_a_refusal_names_the_test_the_candidate_failed():
     assert "its criterion does not fall by 10 (+3.0)" in text and "k-step error by +2 %" in text and "NLL" not in text
 
 
+def test_a_candidate_whose_k_step_predictions_diverge_is_said_to_diverge_not_given_a_percentage():
+    """A lossy_contact drop with a contact exponent of 3.89 in the model (2026-12-04): candidates' held-out k-step
+    errors rose some 1e57-fold and the verdict and tables printed changes of 1e59 %."""
+    base = (*_errors(3.0, 9e-6), 8)
+    fitted, held = _errors(2.9, 5e-6)
+    held["axial only"] = sel.Errors(10, 2.9, np.full(3, 9e-6 * 6e57))
+    wild = sel.judge("wild", (fitted, held, 9), base)
+    text = sel.verdict([wild])["text"]
+    assert "its held-out k-step predictions diverge in axial only (6e+57 times the error)" in text, text
+    assert "%" not in text.split("wild, criterion")[1]
+    assert sel.fall_percent(wild.phase_k_step_fall["axial only"]) == "diverges"
+    assert sel.fall_percent(1.0 - (sel.DIVERGED_ERROR_RATIO - 1.0)) == f"{-100 * (sel.DIVERGED_ERROR_RATIO - 2):+.0f} %"
+    assert sel.fall_percent(0.123) == "+12 %"
+
+
 def _free_flight(rmse, blocks):
     """Held-out errors by phase whose free-flight samples (10 per block) have the per-block squared k-step
     errors `blocks` (m^2, scaled to the RMSE given)."""

@@ -150,6 +150,18 @@ def fall(before: float, after: float) -> float:
     return float(1.0 - after / before) if before else float("nan")
 
 
+#: An error this many times the baseline's: the candidate's held-out k-step predictions have left the bearing
+#: (its k-step RMSE some hundred times a few um), so they diverge and a percentage tells nothing (a contact
+#: exponent of 3.89 in the model: changes of 1e59 % were printed, 2026-12-04).
+DIVERGED_ERROR_RATIO = 100.0
+
+
+def fall_percent(value: float) -> str:
+    """A relative fall (`fall`) as a signed percentage ('+12 %': fell by 12 %), or 'diverges' where the error rose
+    to `DIVERGED_ERROR_RATIO` times its baseline's or more."""
+    return "diverges" if 1.0 - value >= DIVERGED_ERROR_RATIO else f"{100 * value:+.0f} %"
+
+
 #: The best candidate must lower the held-out k-step error (norm over the axes) by more than this share.
 #: Zero: how much an effect lowers it depends on the rig's other model errors (a 1e6 N/m magnetic
 #: stiffness on a family rig lowers it 3 %, the rest being the contact law's), not on whether it is
@@ -354,6 +366,8 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_
     falls = candidate.phase_k_step_fall
     worst_phase = min(falls, key=falls.get, default=None)
     worst_fall = falls[worst_phase] if worst_phase else 0.0
+    if 1.0 - worst_fall >= DIVERGED_ERROR_RATIO:
+        return f"its held-out k-step predictions diverge in {worst_phase} ({1.0 - worst_fall:.2g} times the error)"
     if worst_fall < -max_rise:
         return (
             f"it raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "

@@ -10,6 +10,7 @@ import numpy as np
 
 from touchdown_ros.core.diagnostics.breakdown import AXES, PHASES
 from touchdown_ros.core.diagnostics.prediction import comparison
+from touchdown_ros.core.selection import fall_percent
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.report.diagnosis_figures import plot_diagnosis
 
@@ -292,7 +293,8 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
         )
         lines.append(
             f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
-            f"{100 * row['k_step_fall']:+.0f} % | {100 * row['k_step_fall_net']:+.0f} % | {values} | {per_bag or '-'} |"
+            f"{fall_percent(row['k_step_fall'])} | {fall_percent(row['k_step_fall_net'])} | {values} | "
+            f"{per_bag or '-'} |"
         )
     phases = sorted(
         {p for row in v["candidates"] if row["fitted"] for p in row["k_step_fall_by_phase"]}, key=PHASES.index
@@ -304,7 +306,7 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
             falls = row["k_step_fall_by_phase"]
             lines.append(
                 f"| {row['candidate']} | "
-                + " | ".join(f"{100 * falls[p]:+.0f} %" if p in falls else "-" for p in phases)
+                + " | ".join(fall_percent(falls[p]) if p in falls else "-" for p in phases)
                 + " |"
             )
     return lines
