@@ -58,7 +58,7 @@ from touchdown_ros.workflows.calibrate import (
     friction_capped,
     friction_restart,
 )
-from touchdown_ros.workflows.optimise import DIVERGED_LOSS, Convergence, minimise
+from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
@@ -309,7 +309,7 @@ def _fit_candidates(
             phases = contact_phases(np.asarray(measures.states), config.contact_rig)
         fitted_rows = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
         values, sd = {}, {}
-        diverged = convergence.final_loss >= DIVERGED_LOSS
+        diverged = convergence.diverged
         if diverged:
             print(f"[fit {name}{label}] its filter diverged from the start (the loss is not finite there): no "
                   "standard errors; it ranks last", file=stream, flush=True)
@@ -405,7 +405,7 @@ def _fit_candidates(
             after, steps=before.steps + after.steps, initial_loss=before.initial_loss,
             history=before.history + after.history, seconds=before.seconds + after.seconds,
         )), theta)
-    for fit in [f for f in ranked(selection) if f.convergence.final_loss < DIVERGED_LOSS][: settings.per_bag]:
+    for fit in [f for f in ranked(selection) if not f.convergence.diverged][: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
             coordinates = Coordinates(

@@ -26,6 +26,11 @@ class Convergence:
     kept_step: int | None = None  # the step returned, when a held-out loss chose it
     held_out: tuple[float, ...] = ()  # held-out loss at step 0, 1, ...
 
+    @property
+    def diverged(self) -> bool:
+        """Whether the filter diverged wherever the minimisation went: no finite loss to end at."""
+        return self.final_loss >= DIVERGED_LOSS
+
     def as_dict(self) -> dict[str, Any]:
         record = {
             "converged": self.converged,
