@@ -185,6 +185,10 @@ def test_a_candidate_whose_k_step_predictions_diverge_is_said_to_diverge_not_giv
     assert sel.fall_percent(wild.phase_k_step_fall["axial only"]) == "diverges"
     assert sel.fall_percent(1.0 - (sel.DIVERGED_ERROR_RATIO - 1.0)) == f"{-100 * (sel.DIVERGED_ERROR_RATIO - 2):+.0f} %"
     assert sel.fall_percent(0.123) == "+12 %"
+    # measured over the whole drop alone (no contact phase held out)
+    overall = sel.Judged("overall", criterion=-50.0, nll_fall=0.01, k_step_fall=1.0 - 3e40, phase_k_step_fall={})
+    text = sel.verdict([overall])["text"]
+    assert "its held-out k-step predictions diverge (3e+40 times the error)" in text and "%" not in text, text
 
 
 def _free_flight(rmse, blocks):

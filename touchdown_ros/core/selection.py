@@ -378,7 +378,9 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_
         failed.append(f"its criterion does not fall by {min_criterion_fall:g} ({candidate.criterion:+.1f})")
     if candidate.nll_fall <= 0.0:
         failed.append(f"its held-out NLL does not fall ({-candidate.nll_fall:+.4f} per sample)")
-    if candidate.k_step_fall <= min_fall:
+    if 1.0 - candidate.k_step_fall >= DIVERGED_ERROR_RATIO:
+        failed.append(f"its held-out k-step predictions diverge ({1.0 - candidate.k_step_fall:.2g} times the error)")
+    elif candidate.k_step_fall <= min_fall:
         failed.append(
             f"it changes the held-out k-step error by {-100 * candidate.k_step_fall:+.0f} % (it must fall by more "
             f"than {100 * min_fall:.0f} %)"
