@@ -99,7 +99,7 @@ class TrainingSettings:
     search: str = "thorough"  # stage 1: thorough (AIC, damping restarts; docs/calibration.md) | standard (BIC)
     refinement: str = "lbfgs"  # stage 1's optimiser on all bags (REFINEMENT_CHOICES)
     friction_start: str = "screened"  # stage 1's refinement with a spinning ring (FRICTION_START_CHOICES)
-    friction_ceiling: float | None = None  # stage 1 fits mu and k_ZR at most this (None: unbounded)
+    friction_ceiling: float | None = None  # stage 1 fits mu and k_ZR at most this (None, .inf in YAML: unbounded)
     smoothing_noise: str = "likelihood"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
     friction_drop: str = "given"  # stage 1: the ring friction's Stribeck drop (FRICTION_DROP_CHOICES)
 
@@ -489,6 +489,13 @@ def _axial_support(read: ParameterReader, law: ContactLaw) -> str:
     return choice
 
 
+def _friction_ceiling(read: ParameterReader) -> float | None:
+    """training.friction_ceiling: a positive number, or .inf (YAML; a ROS parameter cannot be null) for none."""
+    if read._get("training.friction_ceiling", math.inf) == math.inf:
+        return None
+    return read.number("training.friction_ceiling", positive=True)
+
+
 def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettings:
     """The `training.*` keys of the two-stage identification (defaults of TrainingSettings)."""
     d = TrainingSettings()
@@ -527,8 +534,7 @@ def _training_settings(read: ParameterReader, law: ContactLaw) -> TrainingSettin
         axial_support=axial_support,
         search=read.choice("training.search", d.search, SEARCH_CHOICES),
         friction_start=read.choice("training.friction_start", d.friction_start, FRICTION_START_CHOICES),
-        friction_ceiling=None if read._get("training.friction_ceiling", None) is None
-        else read.number("training.friction_ceiling", positive=True),
+        friction_ceiling=_friction_ceiling(read),
         refinement=read.choice("training.refinement", d.refinement, REFINEMENT_CHOICES),
         smoothing_noise=read.choice("training.smoothing_noise", d.smoothing_noise, SMOOTHING_NOISE_CHOICES),
         friction_drop=_friction_drop(read, law),
