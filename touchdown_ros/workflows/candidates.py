@@ -87,8 +87,9 @@ class FitSettings:
     # `converge_steps` more: their sizes and the criterion are the optimum's, not the cap's
     to_convergence: int = 3
     converge_steps: int = 200
-    # where the calibrated friction is above HIGH_FRICTION, the baseline and every candidate are fitted again from
-    # the pair of dry and boundary-lubricated frictions that lowers its loss most (`calibrate.friction_restart`)
+    # where the calibrated friction is above HIGH_FRICTION (or held at training.friction_ceiling), the baseline and
+    # every candidate are fitted again from the pair of dry and boundary-lubricated frictions that lowers its loss
+    # most (`calibrate.friction_restart`)
     friction_grid: bool = False
 
 
@@ -252,7 +253,8 @@ def fit_candidates(
     """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
     factors and the model's own effects, from the calibrated values of `config` (the coefficient
     file's or the YAML's), on the records' fitted samples; measure each on the held-out samples; where the
-    calibrated friction is above any bearing's (and `settings.friction_grid`), fit each again from the pair of
+    calibrated friction is above any bearing's or held at `training.friction_ceiling` (and
+    `settings.friction_grid`), fit each again from the pair of
     `calibrate.FRICTION_RESTART_VALUES` that lowers its loss most, keeping the lower loss; fit the baseline
     and the `settings.from_best` next candidates again from the best one's constants, keeping the lower loss;
     where the step cap stopped the baseline or one of the `settings.to_convergence` best, go on from there to
