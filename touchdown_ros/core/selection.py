@@ -156,10 +156,14 @@ def fall(before: float, after: float) -> float:
 DIVERGED_ERROR_RATIO = 100.0
 
 
+def diverges(value: float) -> bool:
+    """Whether a relative fall (`fall`) is an error risen to `DIVERGED_ERROR_RATIO` times its baseline's or more."""
+    return 1.0 - value >= DIVERGED_ERROR_RATIO
+
+
 def fall_percent(value: float) -> str:
-    """A relative fall (`fall`) as a signed percentage ('+12 %': fell by 12 %), or 'diverges' where the error rose
-    to `DIVERGED_ERROR_RATIO` times its baseline's or more."""
-    return "diverges" if 1.0 - value >= DIVERGED_ERROR_RATIO else f"{100 * value:+.0f} %"
+    """A relative fall (`fall`) as a signed percentage ('+12 %': fell by 12 %), or 'diverges' (`diverges`)."""
+    return "diverges" if diverges(value) else f"{100 * value:+.0f} %"
 
 
 #: The best candidate must lower the held-out k-step error (norm over the axes) by more than this share.
@@ -366,7 +370,7 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_
     falls = candidate.phase_k_step_fall
     worst_phase = min(falls, key=falls.get, default=None)
     worst_fall = falls[worst_phase] if worst_phase else 0.0
-    if 1.0 - worst_fall >= DIVERGED_ERROR_RATIO:
+    if diverges(worst_fall):
         return f"its held-out k-step predictions diverge in {worst_phase} ({1.0 - worst_fall:.2g} times the error)"
     if worst_fall < -max_rise:
         return (
@@ -378,7 +382,7 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_
         failed.append(f"its criterion does not fall by {min_criterion_fall:g} ({candidate.criterion:+.1f})")
     if candidate.nll_fall <= 0.0:
         failed.append(f"its held-out NLL does not fall ({-candidate.nll_fall:+.4f} per sample)")
-    if 1.0 - candidate.k_step_fall >= DIVERGED_ERROR_RATIO:
+    if diverges(candidate.k_step_fall):
         failed.append(f"its held-out k-step predictions diverge ({1.0 - candidate.k_step_fall:.2g} times the error)")
     elif candidate.k_step_fall <= min_fall:
         failed.append(
