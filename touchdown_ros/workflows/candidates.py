@@ -159,10 +159,10 @@ class _Problem:
         self.tangents = (len(PARAMETER_NAMES) + len(Q_NAMES) + len(CLEARANCE_NAMES) + own
                          + max([len(c.parameters) for c in candidates] or [0]))
 
-    def flags(self, candidate: str | None = None) -> Stage1:
-        """A full fit's free coordinates: f0, the Q factors, the clearances, the model's own effects and
-        `candidate`'s parameters (None: the baseline)."""
-        fitted_effects = [*self.own_effects, *([candidate] if candidate else [])]
+    def flags(self, name: str = BASELINE) -> Stage1:
+        """A full fit's free coordinates: f0, the Q factors, the clearances, the model's own effects and, unless
+        `name` is the baseline's, that candidate's parameters."""
+        fitted_effects = [*self.own_effects, *([name] if name != BASELINE else [])]
         return stage1_flags(self.effects, True, fitted_effects=fitted_effects, fit_clearances=self.fit_clearances)
 
     def compile_ahead(self) -> None:
@@ -298,7 +298,7 @@ def _fit_candidates(
                 f"fit {name} alone{label}", stream, bounds=problem.bounds(alone),
             )
             start = alone.theta(x)
-        coordinates = Coordinates(start, problem.flags(None if effect is None else name))
+        coordinates = Coordinates(start, problem.flags(name))
         objective = problem.objective(coordinates, batch)
         x, convergence = minimise(
             objective, coordinates.initial(), steps or settings.steps, settings.tolerance, f"fit {name}{label}",
@@ -370,16 +370,17 @@ def _fit_candidates(
     # Held at `training.friction_ceiling` it has likely done the same, as far as the ceiling let it (a hidden z gain:
     # stage 1 at mu 0.496 under 0.5 and the gain's fit at 1.000 for 1.05).
     nominal, ceiling = config.nominal, config.training.friction_ceiling
-    if settings.friction_grid and (friction_above_any_bearings(nominal) or friction_at_ceiling(nominal, ceiling)):
-        where = (f"at training.friction_ceiling ({ceiling:g})" if friction_at_ceiling(nominal, ceiling)
+    held = friction_at_ceiling(nominal, ceiling)
+    if settings.friction_grid and (held or friction_above_any_bearings(nominal)):
+        where = (f"at training.friction_ceiling ({ceiling:g})" if held
                  else f"above any bearing contact's ({HIGH_FRICTION:g})")
         print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is "
               f"{where}: every fit starts again from the pair of "
               f"{', '.join(f'{v:g}' for v in FRICTION_RESTART_VALUES)} that lowers its loss most",
               file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)]:
-            chosen, effect = slots[first.name]
-            coordinates = Coordinates(thetas[first.name], problem.flags(None if effect is None else first.name))
+            chosen = slots[first.name][0]
+            coordinates = Coordinates(thetas[first.name], problem.flags(first.name))
             objective = problem.objective(coordinates, problem.gated(chosen))
             x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
                                  stream, label=f"fit {first.name}, friction grid")
