@@ -603,6 +603,26 @@ def test_friction_restart_reaches_a_boundary_lubricated_contacts_basin():
     assert loss_of(restarted) < loss_of(x)
 
 
+def test_the_friction_restart_tries_no_pair_above_the_friction_ceiling():
+    """Under `training.friction_ceiling` the grid's pairs above it are not tried: where the loss falls most at
+    (0.4, 0.4), a ceiling of 0.3 gets the best pair at most 0.3, and a ceiling below every value gets none."""
+    import io
+
+    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
+
+    def loss_of(x):
+        return float(-np.exp(x[2]) - np.exp(x[5]))
+
+    x = np.array([np.log(1.5e12), np.log(3e13), np.log(0.01), np.log(1.5e12), np.log(9e12), np.log(0.01)])
+    unbounded = friction_restart(loss_of, names, x, loss_of(x), io.StringIO())
+    assert (np.exp(unbounded[2]), np.exp(unbounded[5])) == pytest.approx((0.4, 0.4))
+    log = io.StringIO()
+    capped = friction_restart(loss_of, names, x, loss_of(x), log, ceiling=0.3)
+    assert (np.exp(capped[2]), np.exp(capped[5])) == pytest.approx((0.2, 0.2))
+    assert "mu 0.4" not in log.getvalue() and "k_ZR 0.4" not in log.getvalue(), log.getvalue()
+    assert friction_restart(loss_of, names, x, loss_of(x), io.StringIO(), ceiling=0.01) is None
+
+
 def test_config_reads_the_axial_support():
     from touchdown_ros.io.config import ConfigError, load_config
 

@@ -617,7 +617,9 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         x, convergence = refine(c.law, c.coordinates, x, f"calibrate {label}, refined")
         stalled = convergence.steps == 0 and not convergence.converged
         names = c.coordinates.names
-        restart = friction_restart(loss, names, x, convergence.final_loss, stream) if spinning else None
+        restart = friction_restart(
+            loss, names, x, convergence.final_loss, stream, ceiling=settings.friction_ceiling
+        ) if spinning else None
         if restart is not None:
             x, again = refine(c.law, c.coordinates, restart, f"calibrate {label}, refined from the friction restart")
             convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
@@ -638,7 +640,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         """`fit`, or the candidate refined from the restart grid's friction pair that lowers the loss on all
         records at its screened fit, where that ends lower (`training.friction_start: both`)."""
         loss = problem(c.law, chunks, c.coordinates).loss
-        start = friction_restart(loss, c.coordinates.names, c.x, loss(c.x), stream)
+        start = friction_restart(loss, c.coordinates.names, c.x, loss(c.x), stream, ceiling=settings.friction_ceiling)
         other = None if start is None else refine_finalist(
             c._replace(x=start), f"{c.name} from the friction grid", required=False)
         kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
@@ -1038,16 +1040,23 @@ def damping_restart(
 FRICTION_RESTART_VALUES = (LOW_FRICTION, 0.1, 0.2, 0.4)
 
 
+def friction_restart_values(ceiling: float | None = None) -> list[float]:
+    """The values of `FRICTION_RESTART_VALUES` at most `ceiling` (None: all of them)."""
+    return [v for v in FRICTION_RESTART_VALUES if ceiling is None or v <= ceiling]
+
+
 def friction_restart(
     loss_of: Callable[[np.ndarray], float], names: Sequence[str], x: np.ndarray, loss: float, stream,
-    label: str = "friction restart",
+    label: str = "friction restart", ceiling: float | None = None,
 ) -> np.ndarray | None:
     """x (where the loss is `loss`) with mu and k_ZR set to the pair of `FRICTION_RESTART_VALUES`
-    that lowers the loss most (the free coordinates are logarithms); None if none lowers it. Each pair
-    that lowers it is printed on `stream` after `label`."""
+    at most `ceiling` (`training.friction_ceiling`; None: every pair) that lowers the loss most (the free
+    coordinates are logarithms); None if none lowers it. Each pair that lowers it is printed on `stream`
+    after `label`."""
     best, best_loss = x, loss
-    for mu in FRICTION_RESTART_VALUES:
-        for k_ZR in FRICTION_RESTART_VALUES:
+    values = friction_restart_values(ceiling)
+    for mu in values:
+        for k_ZR in values:
             trial = x.copy()
             trial[names.index("mu")], trial[names.index("k_ZR")] = np.log(mu), np.log(k_ZR)
             trial_loss = loss_of(trial)

@@ -51,12 +51,12 @@ from touchdown_ros.core.types import PARAMETER_NAMES, Model
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.ahead import Ahead
 from touchdown_ros.workflows.calibrate import (
-    FRICTION_RESTART_VALUES,
     HIGH_FRICTION,
     friction_above_any_bearings,
     friction_at_ceiling,
     friction_capped,
     friction_restart,
+    friction_restart_values,
 )
 from touchdown_ros.workflows.optimise import Convergence, minimise
 from touchdown_ros.workflows.progress import STDERR
@@ -254,14 +254,14 @@ def fit_candidates(
     factors and the model's own effects, from the calibrated values of `config` (the coefficient
     file's or the YAML's), on the records' fitted samples; measure each on the held-out samples; where the
     calibrated friction is above any bearing's or held at `training.friction_ceiling` (and
-    `settings.friction_grid`), fit each again from the pair of
-    `calibrate.FRICTION_RESTART_VALUES` that lowers its loss most, keeping the lower loss; fit the baseline
-    and the `settings.from_best` next candidates again from the best one's constants, keeping the lower loss;
-    where the step cap stopped the baseline or one of the `settings.to_convergence` best, go on from there to
-    convergence; fit the `settings.per_bag` best (by the criterion) again bag by bag, their constants kept. The
-    measures' and standard errors' programs compile in a background thread while the baseline's fit compiles
-    the loss's (`Ahead`). A speed candidate starts where `starts` puts it (default: where its speed fits the
-    records' orbits, `core.orbit.candidate_starts`)."""
+    `settings.friction_grid`), fit each again from the pair of `calibrate.FRICTION_RESTART_VALUES` (at most
+    the ceiling) that lowers its loss most, keeping the lower loss; fit the baseline and the `settings.from_best`
+    next candidates again from the best one's constants, keeping the lower loss; where the step cap stopped the
+    baseline or one of the `settings.to_convergence` best, go on from there to convergence; fit the
+    `settings.per_bag` best (by the criterion) again bag by bag, their constants kept. The measures' and
+    standard errors' programs compile in a background thread while the baseline's fit compiles the loss's
+    (`Ahead`). A speed candidate starts where `starts` puts it (default: where its speed fits the records'
+    orbits, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:
@@ -376,14 +376,14 @@ def _fit_candidates(
                  else f"above any bearing contact's ({HIGH_FRICTION:g})")
         print(f"[fit] the calibrated friction (mu {float(nominal.mu):.3g}, k_ZR {float(nominal.k_ZR):.3g}) is "
               f"{where}: every fit starts again from the pair of "
-              f"{', '.join(f'{v:g}' for v in FRICTION_RESTART_VALUES)} that lowers its loss most",
+              f"{', '.join(f'{v:g}' for v in friction_restart_values(ceiling))} that lowers its loss most",
               file=stream, flush=True)
         for first in [selection.baseline, *ranked(selection)]:
             chosen = slots[first.name][0]
             coordinates = Coordinates(thetas[first.name], problem.flags(first.name))
             objective = problem.objective(coordinates, problem.gated(chosen))
             x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
-                                 stream, label=f"fit {first.name}, friction grid")
+                                 stream, label=f"fit {first.name}, friction grid", ceiling=ceiling)
             if x is not None:  # None: the loss is not a number at any pair
                 keep_lower(first, coordinates.theta(x), "the friction grid", restarts=FRICTION_START_RESTARTS)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
