@@ -320,6 +320,33 @@ def test_minimise_keeps_the_step_with_the_lowest_held_out_loss_and_stops_on_pati
     assert float(np.sum((theta - target) ** 2)) == min(convergence.held_out)
 
 
+def test_minimise_counts_the_loss_evaluations_its_line_searches_took():
+    """The convergence record counts each point the loss was evaluated at (L-BFGS's line searches take more than one
+    a step): on Rosenbrock's function as many as scipy's L-BFGS-B counts alone, and more than the steps; the
+    coefficient file's record has them, and the closing line says them."""
+    import io
+
+    from scipy.optimize import minimize, rosen, rosen_der
+
+    from touchdown_ros.workflows.optimise import minimise
+
+    start = np.array([-1.2, 1.0, -0.5, 0.8])
+    calls = []
+
+    def loss(theta):
+        calls.append(np.array(theta))
+        return rosen(theta), rosen_der(theta)
+
+    log = io.StringIO()
+    _, convergence = minimise(loss, start, 200, 1e-12, "rosen", log)
+    reference = minimize(lambda x: (rosen(x), rosen_der(x)), start, jac=True, method="L-BFGS-B",
+                         options={"maxiter": 200, "ftol": 1e-12, "gtol": 1e-12, "maxls": 40})
+    assert convergence.evaluations == len(calls) == reference.nfev, (convergence.evaluations, reference.nfev)
+    assert convergence.evaluations > convergence.steps + 1
+    assert convergence.as_dict()["evaluations"] == convergence.evaluations
+    assert f"after {convergence.steps} steps ({convergence.evaluations} loss evaluations)" in log.getvalue()
+
+
 def test_gauss_newton_finds_a_nonlinear_least_squares_minimum_in_a_few_steps_within_its_bounds():
     """Levenberg-Marquardt on J = |r(theta)|^2 / N of a decaying oscillation (a nonlinear least squares problem,
     J's Gauss-Newton Hessian 2 A^T A / N): the minimum scipy's least_squares finds, in a few steps where L-BFGS

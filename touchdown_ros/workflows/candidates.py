@@ -407,6 +407,7 @@ def _fit_candidates(
         put(replace(again, convergence=replace(
             after, steps=before.steps + after.steps, initial_loss=before.initial_loss,
             history=before.history + after.history, seconds=before.seconds + after.seconds,
+            evaluations=before.evaluations + after.evaluations,
         )), theta)
     for fit in [f for f in ranked(selection) if not f.convergence.diverged][: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]

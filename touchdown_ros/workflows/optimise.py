@@ -25,6 +25,7 @@ class Convergence:
     history: tuple[float, ...] = ()
     kept_step: int | None = None  # the step returned, when a held-out loss chose it
     held_out: tuple[float, ...] = ()  # held-out loss at step 0, 1, ...
+    evaluations: int = 0  # loss evaluations, the line searches' trial points included (0: not counted)
 
     @property
     def diverged(self) -> bool:
@@ -40,6 +41,8 @@ class Convergence:
             "final_loss": self.final_loss,
             "seconds": round(self.seconds, 2),
         }
+        if self.evaluations:
+            record["evaluations"] = self.evaluations
         if self.kept_step is not None:
             record.update(kept_step=self.kept_step, held_out_initial=self.held_out[0],
                           held_out_kept=self.held_out[self.kept_step])
@@ -119,10 +122,13 @@ def minimise(
     held_out: list[float] = []
     best: dict[str, Any] = {}
     last: dict[bytes, tuple] = {}  # L-BFGS asks again for the point it starts from
+    evaluations = 0
 
     def evaluate(theta: np.ndarray) -> tuple:
+        nonlocal evaluations
         key = theta.tobytes()
         if key not in last:
+            evaluations += 1
             value, grad, *monitored = value_and_grad(theta)
             if not (np.isfinite(value) and np.all(np.isfinite(grad))):
                 value, grad, monitored = DIVERGED_LOSS, np.zeros_like(theta), [np.inf] * len(monitored)
@@ -173,7 +179,8 @@ def minimise(
     )
     if max_steps == 0:
         return theta0, Convergence(
-            False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start
+            False, "no steps asked for", 0, initial_loss, initial_loss, time.perf_counter() - start,
+            evaluations=evaluations,
         )
 
     def run(theta: np.ndarray, steps: int):
@@ -228,9 +235,11 @@ def minimise(
         tuple(history),
         kept_step,
         tuple(held_out),
+        evaluations,
     )
     print(
-        f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}",
+        f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps ({evaluations} loss "
+        f"evaluations): {reason}",
         file=stream,
         flush=True,
     )
@@ -267,8 +276,11 @@ def gauss_newton(
         np.asarray(bounds, dtype=float).T
     )
     theta = np.clip(np.asarray(theta0, dtype=float), low, high)
+    evaluations = 0
 
     def finite_terms(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        nonlocal evaluations
+        evaluations += 1
         f, g, H = terms(x)
         if not (np.isfinite(f) and np.all(np.isfinite(g)) and np.all(np.isfinite(H))):
             return DIVERGED_LOSS, np.zeros_like(x), np.zeros((len(x), len(x)))
@@ -301,6 +313,8 @@ def gauss_newton(
         return -(gradient @ moved + 0.5 * moved @ hessian @ moved)
 
     def loss_at(x: np.ndarray) -> float:
+        nonlocal evaluations
+        evaluations += 1
         got = value(x)
         return float(got) if np.isfinite(got) else DIVERGED_LOSS
 
@@ -360,10 +374,11 @@ def gauss_newton(
         convergence = Convergence(
             after.converged, f"{after.reason}; L-BFGS's {after.steps} steps after {steps} of Gauss-Newton, which "
             f"stalled ({reason})", steps + after.steps, initial_loss, after.final_loss, time.perf_counter() - start,
-            (*history, *after.history),
+            (*history, *after.history), evaluations=evaluations + after.evaluations,
         )
         return theta, convergence
-    convergence = Convergence(converged, reason, steps, initial_loss, loss, time.perf_counter() - start, tuple(history))
-    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps: {reason}",
-          file=stream, flush=True)
+    convergence = Convergence(converged, reason, steps, initial_loss, loss, time.perf_counter() - start, tuple(history),
+                              evaluations=evaluations)
+    print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps ({evaluations} loss "
+          f"evaluations): {reason}", file=stream, flush=True)
     return theta, convergence
