@@ -384,7 +384,7 @@ def _fit_candidates(
             objective = problem.objective(coordinates, problem.gated(chosen))
             x = friction_restart(lambda x: objective(x)[0], coordinates.names, coordinates.initial(), np.inf,
                                  stream, label=f"fit {first.name}, friction grid", ceiling=ceiling)
-            if x is not None:  # None: the loss is not a number at any pair
+            if x is not None:  # None: no pair at most the ceiling, or the loss is not a number at any
                 keep_lower(first, coordinates.theta(x), "the friction grid", restarts=FRICTION_START_RESTARTS)
     # The calibrated constants may have taken up part of the missing effect (a hidden axial load on a
     # spinning ring: stage 1's mu 0.88 for 0.2); a candidate started there can stay in that basin
