@@ -86,6 +86,26 @@ def test_the_stuck_ring_is_stable_where_an_explicit_step_is_not():
     assert near < implicit <= RIG.speed
 
 
+@pytest.mark.parametrize("stiffness", [1.0, 10.0], ids=["the face's k_Z", "ten times"])
+@pytest.mark.parametrize("case", CASES)
+def test_the_rings_implicit_update_solves_its_equation_wherever_the_ring_meets_the_rotor(case, stiffness):
+    """From every speed a step short of the rotor's, where the ring reaches the rotor's speed within the step (the
+    torque flat on one side of the stick, steep on the other), the update solves backward Euler's w = w0 + h T(w) / J
+    to rounding, and it moves continuously with w0 (no jump between neighbouring starts)."""
+    model = model_with("spinning_ring", 0.01)
+    model = model._replace(nominal=NOMINAL._replace(k_Z=NOMINAL.k_Z * stiffness))
+    xi = jnp.asarray(CASES[case] + [0.0])
+    h, J = 1e-4, model.rig.ring_inertia
+    torque = jax.jit(jax.vmap(lambda w: contact_forces(model, xi.at[OMEGA_RING].set(w)).ring_torque))
+    span = h * float(torque(jnp.zeros(1))[0]) / J  # the speed one step of the Coulomb torque gains
+    starts = RIG.speed - jnp.linspace(1.5 * span, 0.0, 3001)
+    update = jax.jit(jax.vmap(lambda w: ring_speed_after(model, xi.at[OMEGA_RING].set(w), h)))
+    after = update(starts)
+    residual = np.asarray(after - starts - h * torque(after) / J)
+    assert np.max(np.abs(residual)) < 1e-9 * RIG.speed, (span, float(np.max(np.abs(residual))))
+    assert np.all(np.diff(np.asarray(after)) >= -1e-9)  # monotone in the start, as the equation's root is
+
+
 @pytest.mark.parametrize("drop", [0.0, 0.4], ids=["Coulomb", "Stribeck"])
 @pytest.mark.parametrize("braked", [False, True], ids=["constant speed", "braked"])
 @pytest.mark.parametrize("case", CASES)
