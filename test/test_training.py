@@ -347,6 +347,33 @@ def test_minimise_counts_the_loss_evaluations_its_line_searches_took():
     assert f"after {convergence.steps} steps ({convergence.evaluations} loss evaluations)" in log.getvalue()
 
 
+def test_a_fit_restarted_records_both_runs_steps_and_losses():
+    """A fit restarted (stage 1's damping or friction restart) is one record of both runs: its loss history has a
+    loss for each of the steps it counts, from the first run's start to the second's end, as `touchdown report`
+    draws it; the evaluations and seconds of both add up."""
+    import io
+
+    from scipy.optimize import rosen, rosen_der
+
+    from touchdown_ros.workflows.calibrate import after_restart
+    from touchdown_ros.workflows.optimise import minimise
+
+    def loss(theta):
+        return rosen(theta), rosen_der(theta)
+
+    log = io.StringIO()
+    theta, first = minimise(loss, np.array([-1.2, 1.0, -0.5, 0.8]), 5, 1e-12, "first", log)
+    _, again = minimise(loss, theta + 0.3, 200, 1e-12, "again", log)
+    record = after_restart(first, again, "friction", 200).as_dict()
+    assert record["steps"] == first.steps + again.steps == 5 + again.steps
+    assert len(record["loss_history"]) == record["steps"] + 1
+    assert record["loss_history"][0] == first.initial_loss
+    assert record["loss_history"][5] == first.final_loss
+    assert record["loss_history"][-1] == record["final_loss"] == again.final_loss
+    assert record["evaluations"] == first.evaluations + again.evaluations
+    assert "5 steps before a friction restart" in record["reason"]
+
+
 def test_gauss_newton_finds_a_nonlinear_least_squares_minimum_in_a_few_steps_within_its_bounds():
     """Levenberg-Marquardt on J = |r(theta)|^2 / N of a decaying oscillation (a nonlinear least squares problem,
     J's Gauss-Newton Hessian 2 A^T A / N): the minimum scipy's least_squares finds, in a few steps where L-BFGS

@@ -286,12 +286,10 @@ def _per_bag_losses(model: Model, noise: FilterNoise, h: float, batch: Batch, ki
 
 def after_restart(first: Convergence, again: Convergence, restart: str, cap: int) -> Convergence:
     """One fit's convergence from its run before a restart (`restart`: what restarted it) and the run after it:
-    the steps, loss evaluations and seconds of both, the loss from the first start, the reason saying how the steps
-    add up."""
-    return dataclasses.replace(
-        again, steps=first.steps + again.steps, initial_loss=first.initial_loss, seconds=first.seconds + again.seconds,
-        evaluations=first.evaluations + again.evaluations,
-        reason=f"{again.reason}; {first.steps} steps before a {restart} restart and {again.steps} after it, "
+    both runs' steps, evaluations, seconds and loss histories, the reason saying how the steps add up."""
+    return first.then(
+        again,
+        f"{again.reason}; {first.steps} steps before a {restart} restart and {again.steps} after it, "
         f"at most {cap} each",
     )
 

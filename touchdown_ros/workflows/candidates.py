@@ -403,12 +403,7 @@ def _fit_candidates(
             continue
         again, theta = fitted(first.name, thetas[first.name], ", to convergence", alone=False,
                               steps=settings.converge_steps)
-        before, after = first.convergence, again.convergence
-        put(replace(again, convergence=replace(
-            after, steps=before.steps + after.steps, initial_loss=before.initial_loss,
-            history=before.history + after.history, seconds=before.seconds + after.seconds,
-            evaluations=before.evaluations + after.evaluations,
-        )), theta)
+        put(replace(again, convergence=first.convergence.then(again.convergence, again.convergence.reason)), theta)
     for fit in [f for f in ranked(selection) if not f.convergence.diverged][: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):

@@ -1,6 +1,7 @@
 """Minimising a training loss: L-BFGS with progress and a record of how it stopped."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +32,15 @@ class Convergence:
     def diverged(self) -> bool:
         """Whether the filter diverged wherever the minimisation went: no finite loss to end at."""
         return self.final_loss >= DIVERGED_LOSS
+
+    def then(self, after: Convergence, reason: str) -> Convergence:
+        """One fit from this run and the run that went on after it (from where this one ended or from a restart):
+        the steps, evaluations, seconds and loss histories of both, the loss from this run's start, `after`'s end."""
+        return dataclasses.replace(
+            after, reason=reason, steps=self.steps + after.steps, initial_loss=self.initial_loss,
+            seconds=self.seconds + after.seconds, history=self.history + after.history,
+            evaluations=self.evaluations + after.evaluations,
+        )
 
     def as_dict(self) -> dict[str, Any]:
         record = {
@@ -371,12 +381,12 @@ def gauss_newton(
         print(f"[{label}] Gauss-Newton stalled after {steps} steps ({reason}): L-BFGS goes on from there",
               file=stream, flush=True)
         theta, after = fallback(theta, max_steps - steps)
-        convergence = Convergence(
-            after.converged, f"{after.reason}; L-BFGS's {after.steps} steps after {steps} of Gauss-Newton, which "
-            f"stalled ({reason})", steps + after.steps, initial_loss, after.final_loss, time.perf_counter() - start,
-            (*history, *after.history), evaluations=evaluations + after.evaluations,
+        before = Convergence(False, reason, steps, initial_loss, loss, time.perf_counter() - start - after.seconds,
+                             tuple(history), evaluations=evaluations)
+        return theta, before.then(
+            after,
+            f"{after.reason}; L-BFGS's {after.steps} steps after {steps} of Gauss-Newton, which stalled ({reason})",
         )
-        return theta, convergence
     convergence = Convergence(converged, reason, steps, initial_loss, loss, time.perf_counter() - start, tuple(history),
                               evaluations=evaluations)
     print(f"[{label}] {'converged' if converged else 'NOT converged'} after {steps} steps ({evaluations} loss "
