@@ -46,6 +46,34 @@ def test_train_records_each_fits_loss_per_step(trained):
     assert pkbkr["held_out_history"][pkbkr["kept_step"]] == pytest.approx(pkbkr["held_out_kept"])
 
 
+def test_stage_1s_record_counts_the_refinement_with_the_support_held(tmp_path, capsys):
+    """A yielding fit is refined first with its support held, then free: the file's stage-1 record counts the steps,
+    loss evaluations and losses of both runs (the campaign's refinement took 71 steps held and 3 free, and the
+    record said 3)."""
+    import re
+
+    v = variant("soft_bearing")
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=3)
+    rig = write_rig_yaml(v, tmp_path / "bags", overwrite=True)
+    coeffs = tmp_path / "c.yaml"
+    options = ["-p", "contact.friction:=paper", "-p", "training.contact_laws:=[hertz:1.5]",
+               "-p", "training.axial_support:=yielding"]
+    assert main(["train", str(bags[0]), "--config", str(rig), *options, "--duration", "0.03", "--steps", "0",
+                 "-o", str(coeffs)]) == 0
+    said = capsys.readouterr().err
+    runs = {which: re.search(rf"\[calibrate \S+ n=1.5 \+ yielding support, refined{which}\] (?:NOT )?converged after "
+                             r"(\d+) steps \((\d+) loss evaluations\)", said)
+            for which in (" with the support held", "", " from the support grid[^]]*")}
+    restarted = runs.pop(" from the support grid[^]]*")  # where the support grid's start was lower: counted too
+    assert all(runs.values()), said[-3000:]
+    steps, evaluations = (sum(int(run[i]) for run in [*runs.values(), restarted] if run) for i in (1, 2))
+    calibration = yaml.safe_load(coeffs.read_text())["training"]["calibration"]
+    assert int(runs[" with the support held"][1]) > 0
+    assert (calibration["steps"], calibration["evaluations"]) == (steps, evaluations), (calibration["steps"], runs)
+    assert len(calibration["loss_history"]) == steps + 1
+    assert "steps with the support held" in calibration["reason"]
+
+
 def test_report_shows_the_calibration_the_lambda_path_and_figures(trained, tmp_path, capsys):
     rig, coeffs = trained
     out = tmp_path / "report"

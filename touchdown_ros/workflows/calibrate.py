@@ -588,6 +588,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         if not convergence.converged or convergence.final_loss >= c.convergence.final_loss:
             return c
         score = criterion(convergence.final_loss, len(SUPPORT_NAMES), n_valid, kind)
+        convergence = after_restart(c.convergence, convergence, "support grid", settings.calibration_steps)
         return c._replace(score=score, x=x, convergence=convergence)
 
     if spinning:
@@ -629,6 +630,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             # is where the support's coordinates, free, do not move it, so it stands.
             x, convergence = x_start, dataclasses.replace(
                 held_convergence, reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}"
+            )
+        elif c.yields and thorough:
+            convergence = held_convergence.then(
+                convergence, f"{convergence.reason}; after {held_convergence.steps} steps with the support held"
             )
         if not (required or convergence.converged):
             return None
