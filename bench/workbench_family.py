@@ -7,7 +7,7 @@ guess), run `touchdown diagnose --coeffs`, and read its verdict: the candidate i
 "unexplained"), the margin to the second, the fitted parameters against the truth, and the
 held-out k-step prediction error of the baseline and with the named candidate.
 
-    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N] [-p NAME:=VALUE ...]
+    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N] [--from-guess] [-p NAME:=VALUE ...]
 
 --fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 10 since 2026-11-25); each call's wall
 time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
@@ -19,7 +19,9 @@ family's ceramic balls), to see what another physical effect does to a case; the
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on beside the effects the rounds added
-(`-p effects.active:=[added..., effect]`): its fitted parameters against the truth, and the contact
+(`-p effects.active:=[added..., effect]`), from the last diagnosed file's calibration as a user goes on after
+diagnose (`touchdown train --start FILE`; each round's stage 1 too; `--from-guess`: from the rig YAML's guess, as the
+bench did until 2026-12-05): its fitted parameters against the truth, and the contact
 force RMSE of the smoothed estimate against the truth without and with it; when the rounds added
 any, stage 1 with the true effect alone as well ("alone:" in the table), to see what the effects
 added first take from it. A case passes when the verdict is right, every parameter is within
@@ -185,19 +187,23 @@ def _second(verdict: dict) -> str | None:
     return next((n for n in names if n != first), None)
 
 
-def run_case(case: Case, out: Path, fit: int | None = None, params: list[str] = ()) -> dict:
+def run_case(
+    case: Case, out: Path, fit: int | None = None, params: list[str] = (), from_guess: bool = False
+) -> dict:
     """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
-    true effect switched on; the figures of its row."""
+    true effect switched on, from the diagnosed file's calibration (`train --start`; `from_guess`: from the rig
+    YAML's guess, as before 2026-12-05); the figures of its row."""
     started = time.perf_counter()
     shutil.rmtree(out, ignore_errors=True)
     bags, rig, truths = simulate(case, out)
     log = io.StringIO()
     overrides = [a for p in params for a in ("-p", p)]
 
-    def train(path: Path, effects: list[str]) -> Path:
+    def train(path: Path, effects: list[str], start: Path | None = None) -> Path:
         active = ["-p", f"effects.active:=[{','.join(effects)}]"] if effects else []
-        _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *overrides, *active],
-             log)
+        started = ["--start", str(start)] if start is not None and not from_guess else []
+        _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *overrides, *active,
+              *started], log)
         return path
 
     # The workbench's loop as a user runs it: diagnose; when it names an effect, add it and
@@ -206,8 +212,9 @@ def run_case(case: Case, out: Path, fit: int | None = None, params: list[str] = 
     verdicts = []
     diagnose_seconds = []
     fit_option = [] if fit is None else ["--fit", str(fit)]
+    calibrated = None
     for round_ in range(1, MAX_ROUNDS + 1):
-        calibrated = train(out / f"calibrated_{round_}.yaml", added)
+        calibrated = train(out / f"calibrated_{round_}.yaml", added, start=calibrated)
         diagnosis = out / f"diagnosis_{round_}"
         diagnose_started = time.perf_counter()
         _run(["diagnose", *map(str, bags), "--config", str(rig), "--coeffs", str(calibrated), "--out",
@@ -236,11 +243,12 @@ def run_case(case: Case, out: Path, fit: int | None = None, params: list[str] = 
     force_before = force_rmse(rig, calibrated, bags, params)
     trained, alone, force_after = {}, {}, force_before
     if case.effect:
-        with_effect = train(out / "with_effect.yaml", [*added, case.effect])
+        with_effect = train(out / "with_effect.yaml", [*added, case.effect], start=calibrated)
         trained = case.identifiable(fitted_effect(with_effect, case.effect))
         force_after = force_rmse(rig, with_effect, bags, params)
         if added:  # what the effects added first take from it: stage 1 with the hidden effect alone
-            alone = case.identifiable(fitted_effect(train(out / "with_effect_alone.yaml", [case.effect]), case.effect))
+            alone_file = train(out / "with_effect_alone.yaml", [case.effect], start=out / "calibrated_1.yaml")
+            alone = case.identifiable(fitted_effect(alone_file, case.effect))
     (out / "log.txt").write_text(log.getvalue())
     errors, trained_errors = _relative_errors(fitted, truth), _relative_errors(trained, truth)
     alone_errors = _relative_errors(alone, truth)
@@ -344,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
         "--fit", type=int, default=None,
         help="passed to every `touchdown diagnose` call: fit FROLS's best N candidates (default: diagnose's own)",
     )
+    parser.add_argument("--from-guess", action="store_true",
+                        help="train each effect from the rig YAML's guess, not from the diagnosed file (`--start`)")
     parser.add_argument("--scale", type=float, default=None, help="each chosen hidden effect this many times as large")
     parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a rig parameter override passed to every touchdown call")
@@ -368,7 +378,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in chosen:
-        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit, args.param)
+        row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit, args.param,
+                       args.from_guess)
         rows.append(row)
         # Each case compiles its own rig's programs; kept, they grew this process by about 1.4 GB a case
         # (11 GB after eight cases, 2026-12-02). The persistent compilation cache stays on disk.

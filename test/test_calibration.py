@@ -1024,6 +1024,36 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
     assert "friction_starts" not in screened_alone
 
 
+def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_switched_on(tmp_path, soft_rig, capsys):
+    """`touchdown train --start C -p effects.active:=[E]`: stage 1 fits C's law alone, from C's constants (the guess and
+    the start), with E beside them, as diagnose fits a candidate; the file says where it started. Given with --init
+    (which skips stage 1) it is refused and nothing is written."""
+    v, rig = soft_rig
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
+    short = ["--config", str(rig), "-p", "contact.friction:=paper", "--duration", "0.05", "--steps", "0"]
+    baseline = tmp_path / "c.yaml"
+    assert main(["train", str(bags[0]), *short, "-o", str(baseline)]) == 0
+    first = yaml.safe_load(baseline.read_text())
+    capsys.readouterr()
+    loaded = tmp_path / "with_load.yaml"
+    assert main(["train", str(bags[0]), *short, "-o", str(loaded), "--start", str(baseline),
+                 "-p", "effects.active:=[axial_load]"]) == 0
+    said = capsys.readouterr().err
+    law = first["training"]["calibration"]["law"].split(",")[0]
+    assert f"stage 1 starts from {baseline}: {law}" in said, said[:2000]
+    calibration = yaml.safe_load(loaded.read_text())["training"]["calibration"]
+    assert calibration["started_from"] == str(baseline)
+    assert {c["contact_law"] for c in calibration["candidates"]} == {
+        next(c["contact_law"] for c in first["training"]["calibration"]["candidates"]
+             if c.get("refined_criterion_above_best") == 0)}
+    assert calibration["guess"] == pytest.approx(first["training"]["calibration"]["calibrated"], rel=1e-9)
+    assert "axial_load.force" in calibration["relative_standard_error"]
+    refused = tmp_path / "refused.yaml"
+    code = main(["train", str(bags[0]), *short, "-o", str(refused), "--start", str(baseline), "--init", str(baseline)])
+    assert code == EXIT_BAD_INPUT and not refused.exists()
+    assert "--start runs stage 1 from a file's calibration" in capsys.readouterr().err
+
+
 def test_a_friction_ceiling_holds_stage_1s_friction_at_most_it_and_says_so(tmp_path, soft_rig, capsys):
     """`training.friction_ceiling`: stage 1 fits mu and k_ZR at most the ceiling. Set at half of what the drop fits
     unbounded, the fit ends held at it, and the file's notes say so; a ceiling not above zero is refused."""

@@ -292,7 +292,7 @@ def _lowers_the_error(case, bags, rig, calibrated, verdict, tmp_path):
         return
     assert k_step_ratio, (before, after)
     with_it = _calibrated(bags, tmp_path / "with.yaml", "--config", str(rig), "--duration", "0.15",
-                          "-p", f"effects.active:=[{effect}]")
+                          "-p", f"effects.active:=[{effect}]", "--start", str(calibrated))
     config = load_config(rig)
     forces = [force_rmse_against_truth(config, c, bags) for c in (calibrated, with_it)]
     assert forces[1] <= 0.5 * forces[0], (before, after, forces)

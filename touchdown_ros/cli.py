@@ -109,6 +109,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         regularisation=args.regularisation,
         init=args.init,
         resume=args.resume,
+        start=args.start,
         steps=args.steps,
         duration=args.duration,
         overwrite=args.overwrite,
@@ -294,6 +295,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--lambda", dest="regularisation", type=float, help="eq. 18 lambda (default: training.regularisation)"
     )
     p.add_argument("--init", type=Path, help="warm-start from this coefficient file")
+    p.add_argument(
+        "--start", type=Path, metavar="COEFFS",
+        help="run stage 1 from this coefficient file's calibration (its contact law, constants, friction and Q), "
+        "with the rig's active effects fitted beside them: after `touchdown diagnose --coeffs COEFFS` named one",
+    )
     p.add_argument("--resume", action="store_true", help="continue from OUT.checkpoint of an interrupted run")
     p.add_argument(
         "--steps", type=int, default=None,

@@ -162,15 +162,20 @@ def train_bags(
     steps: int | None = None,
     duration: float | None = None,
     overwrite: bool = False,
+    start: Path | None = None,
 ) -> TrainOutcome:
     """`train` on the bags into the coefficient file out, after checking every bag, the warm-start
-    file and the output place; the checkpoint stays when training stops (`resume` continues from
+    or start file and the output place; the checkpoint stays when training stops (`resume` continues from
     it), the file is written at the end, atomically."""
     if out.exists() and not (overwrite or resume):
         raise FileExistsError(f"{out} exists; pass --overwrite to replace it or --resume to continue")
+    if start is not None and (init is not None or resume):
+        raise ValueError("--start runs stage 1 from a file's calibration; --init and --resume skip stage 1: "
+                         "give one of them")
     check_writable(out, directory=False)
-    if init is not None:
-        load_coefficients(init, config)
+    for given in (init, start):
+        if given is not None:
+            load_coefficients(given, config)
     for bag in bags:  # every bag is checked before the work
         check_training_bag(config, bag)
     with OutputGuard([out]):
@@ -181,6 +186,7 @@ def train_bags(
             regularisation=regularisation,
             init=init,
             resume=resume,
+            start=start,
             max_steps=steps,
             duration=duration,
         )

@@ -380,6 +380,24 @@ def _merge_effects(active: Effects, started: Effects) -> Effects:
     return active.with_values(started.values())
 
 
+def calibration_started_from(config: Config, path: Path, stream=STDERR) -> Config:
+    """`config` with stage 1 started from the coefficient file at `path` (`touchdown train --start`): the file's
+    contact law as the one candidate, its constants, friction and process noise as the guess and the start, the rig's
+    active effects from the file's values where it fitted them. The rig YAML still says what is fitted (its effects,
+    `training.*`); the axial support is fitted again from its grid (`training.axial_support: given`: the YAML's)."""
+    loaded = load_coefficients(path, config)
+    calibrated = loaded.config(config)
+    given = config.training.axial_support == "given"
+    law = calibrated.law.with_support(
+        *((config.law.support_preload, config.law.support_span, config.law.support_log_covariance) if given else ())
+    )
+    print(f"stage 1 starts from {path}: {law.label}, friction {law.friction}", file=stream, flush=True)
+    return replace(
+        calibrated, law=law, effects=_merge_effects(config.effects, loaded.effects),
+        training=replace(config.training, contact_laws=(law,), friction_models=()),
+    )
+
+
 def checkpoint_path(out: Path) -> Path:
     return out.with_name(out.name + ".checkpoint")
 
@@ -515,18 +533,20 @@ def train(
     max_steps: int | None = None,
     duration: float | None = None,
     stream=STDERR,
+    start: Path | None = None,
 ) -> TrainOutcome:
     """Validate all bags, identify the rig (stage 1, `calibrate`), place the kernel centres on the
     data, fit PKBKR around the calibrated constants (stage 2, `fit`) and write the coefficient file
     (a checkpoint after every stage-2 step). With `init`, stage 1 is taken from that file and the
-    lambda path (`fit_regularisation_path`) starts from its coefficients. With `resume`, stage 1 is
+    lambda path (`fit_regularisation_path`) starts from its coefficients. With `start`, stage 1 runs from that
+    file's calibration (`calibration_started_from`), as diagnose fits a candidate. With `resume`, stage 1 is
     the checkpoint's and the path goes on where it stopped: the lambdas it finished are not fitted
     again (the lowest of them was kept beside the checkpoint, `lambda_fit_path`), the interrupted
     one continues from the checkpoint's coefficients, the later ones start from stage 1's model.
     Stage 2's program, the standard errors' and the smoothing noise's are compiled in a background thread
     while stage 1 runs (`Ahead`)."""
     with Ahead(stream) as ahead:
-        return _train(config, bags, out, regularisation, init, resume, max_steps, duration, stream, ahead)
+        return _train(config, bags, out, regularisation, init, resume, max_steps, duration, stream, ahead, start)
 
 
 def _train(
@@ -540,8 +560,9 @@ def _train(
     duration: float | None,
     stream,
     ahead: Ahead,
+    start: Path | None = None,
 ) -> TrainOutcome:
-    start = time.perf_counter()
+    started = time.perf_counter()
     lambdas = config.regularisation if regularisation is None else (regularisation,)
     steps = config.training.pkbkr_steps if max_steps is None else max_steps
     data = load_training_data(config, bags, duration)
@@ -557,6 +578,8 @@ def _train(
         if resume and "stage2_start_effects" in loaded.training.extra:
             initial, progress = _resumed_path(config, calibrated, out, loaded.training.extra, initial)
     else:
+        if start is not None:
+            config = calibration_started_from(config, start, stream)
         frictions = config.training.friction_models
         if frictions and frictions != (config.law.friction,):
             calibration = calibrate_frictions(config, data, stream)
@@ -566,7 +589,7 @@ def _train(
             compile_stage2_ahead(ahead, config, data)
             calibration = calibrate_stage1(config, data, ahead, stream)
         calibrated = calibration.config
-        stage1 = calibration.summary()
+        stage1 = calibration.summary() if start is None else {**calibration.summary(), "started_from": str(start)}
         if config.training.placement == "data":
             placing = time.perf_counter()
             states, _ = filtered_records(
@@ -632,7 +655,7 @@ def _train(
     force_error = model_force_error(final, calibrated.offline_noise(), config.sample_period, batch, stream)
     calibrated = replace(calibrated, force_model_variance=force_error.variance)
     mean_nis = tuple(float(np.nanmean(row)) for row in nis)
-    seconds = time.perf_counter() - start
+    seconds = time.perf_counter() - started
     save_coefficients(
         out,
         result.coeffs,
