@@ -145,6 +145,8 @@ def test_load_is_ranked_first_fitted_and_adding_it_halves_the_errors(load_bags, 
     for name in ("diagnosis.md", "errors.csv", "ranking.csv", "figures/missing_force.png", "figures/ranking.png"):
         assert (out / name).stat().st_size > 200, name
     assert "after / before" in (out / "diagnosis.md").read_text()
+    assert f"-o with_axial_load.yaml --start {calibrated} -p 'effects.active:=[axial_load]'" in (
+        out / "diagnosis.md").read_text()
 
 
 @pytest.fixture(scope="module")
@@ -440,6 +442,22 @@ def test_a_cross_coupling_named_under_the_papers_friction_is_qualified():
     assert verdict_notes([], "spinning_ring", named) == []
     assert verdict_notes([], "paper", {"explained": True, "best": "radial_load"}) == []
     assert verdict_notes([], "paper", {"explained": False, "best": "cross_coupled_stiffness"}) == []
+
+
+def test_the_report_says_how_to_add_the_named_effect_from_the_diagnosed_file():
+    """diagnosis.md's next step under a verdict that names an effect: `train --start` from the diagnosed file with the
+    effects it kept beside the new one, then the comparison; none where the verdict names none."""
+    from touchdown_ros.workflows.report.diagnosis import CONSTANT_MODEL, next_step
+
+    named = {"explained": True, "best": "brake_decay"}
+    model = {"coefficients": "fits/c.yaml", "effects": {"axial_load": {"force": 1900.0}}, "verdict": named}
+    assert next_step(model) == (
+        "To add it: `touchdown train BAG... -o with_brake_decay.yaml --start fits/c.yaml -p "
+        "'effects.active:=[axial_load, brake_decay]'`, then `touchdown diagnose BAG... --coeffs fits/c.yaml --compare "
+        "with_brake_decay.yaml` (docs/workbench.md).")
+    constant = next_step({**model, "coefficients": CONSTANT_MODEL, "effects": {}})
+    assert "--start" not in constant and "--coeffs" not in constant and "[brake_decay]" in constant
+    assert next_step({**model, "verdict": {"explained": False, "best": "brake_decay"}}) is None
 
 
 def test_residual_tests_see_white_and_coloured_sequences():

@@ -35,7 +35,7 @@ from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.candidates import FitSettings, candidates_to_fit, fit_candidates, fitted_verdict
 from touchdown_ros.workflows.offline import BagEstimate, bag_effects, estimate_bag, estimator_for
 from touchdown_ros.workflows.progress import STDERR, progress
-from touchdown_ros.workflows.report.diagnosis import write_diagnosis
+from touchdown_ros.workflows.report.diagnosis import CONSTANT_MODEL, write_diagnosis
 from touchdown_ros.workflows.training_data import load_training_data
 
 
@@ -67,7 +67,7 @@ class BagDiagnosis:
 @dataclass
 class Diagnosis:
     label: str
-    coefficients: str
+    coefficients: str  # the coefficient file, or CONSTANT_MODEL
     effects: dict
     bags: list[BagDiagnosis]
     metrics: dict[str, Any]
@@ -269,7 +269,7 @@ def diagnose(
     )
     return Diagnosis(
         label=label,
-        coefficients=str(coefficient_file) if coefficient_file else "constant model (rig nominal values)",
+        coefficients=str(coefficient_file) if coefficient_file else CONSTANT_MODEL,
         effects=estimator.model.effects.values(),
         bags=results,
         metrics=metrics,

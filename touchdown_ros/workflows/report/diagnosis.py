@@ -17,6 +17,8 @@ from touchdown_ros.workflows.report.diagnosis_figures import plot_diagnosis
 if TYPE_CHECKING:  # the workflow imports this module to write its results
     from touchdown_ros.workflows.diagnose import Diagnosis, Settings
 
+CONSTANT_MODEL = "constant model (rig nominal values)"  # what a diagnosis without a coefficient file is of
+
 
 def write_diagnosis(diagnoses: Sequence[Diagnosis], config: Config, out: Path, settings: Settings) -> dict[str, Any]:
     """diagnosis.json, diagnosis.md, errors.csv, ranking.csv and the figures in out."""
@@ -225,6 +227,9 @@ def markdown(document: dict[str, Any]) -> str:
             f"**{v['text']}**",
             "",
         ]
+        step = next_step(m)
+        if step:
+            lines += [step, ""]
         if "frols" in v:
             lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
         lines += [
@@ -259,6 +264,20 @@ def markdown(document: dict[str, Any]) -> str:
             lines.append(f"- contact-force RMSE vs truth (norm): x {c['contact_force_rmse_norm']:.2f}")
         lines.append("- missing force rms per axis: " + " / ".join(f"x {v:.2f}" for v in c["missing_force_rms"]))
     return "\n".join(lines) + "\n"
+
+
+def next_step(model: dict[str, Any]) -> str | None:
+    """How to add the effect a model's verdict names (`touchdown train --start` from the diagnosed file, the effects
+    it has kept beside the new one) and compare; None where the verdict names none."""
+    verdict = model["verdict"]
+    if not verdict["explained"]:
+        return None
+    best, coefficients = verdict["best"], model["coefficients"]
+    active = ", ".join([*model["effects"], best])
+    from_file = coefficients != CONSTANT_MODEL
+    start, before = (f" --start {coefficients}", f" --coeffs {coefficients}") if from_file else ("", "")
+    return (f"To add it: `touchdown train BAG... -o with_{best}.yaml{start} -p 'effects.active:=[{active}]'`, then "
+            f"`touchdown diagnose BAG...{before} --compare with_{best}.yaml` (docs/workbench.md).")
 
 
 def fitted_markdown(v: dict[str, Any]) -> list[str]:
