@@ -514,6 +514,7 @@ def test_calibration_says_when_the_friction_came_out_above_any_bearing_contacts(
     said = calibration(1.49, 0.18, "spinning_ring").friction_note()
     assert said.startswith("friction: mu 1.5 and k_ZR 0.18, above any bearing contact's"), said
     assert "touchdown diagnose" in said and "effects.active" in said and "bore's friction" in said
+    assert "touchdown train BAGS --start FILE" in said
     assert calibration(1.49, 0.18, "spinning_ring").notes() == [said]
     said = calibration(0.2, 2 * HIGH_FRICTION, "paper").friction_note()
     assert "above any bearing contact's" in said and "bore's friction" not in said

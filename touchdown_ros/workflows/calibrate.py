@@ -196,7 +196,7 @@ class Calibration:
                 )
             return said + (
                 "`touchdown diagnose BAGS --coeffs FILE` names such an effect, and training with it switched on "
-                "(-p 'effects.active:=[NAME]') fits the friction again beside it"
+                "(`touchdown train BAGS --start FILE -p 'effects.active:=[NAME]'`) fits the friction again beside it"
             )
         if self.config.law.friction != "paper" or largest_friction(nominal) >= LOW_FRICTION:
             return None
