@@ -380,9 +380,9 @@ def gauss_newton(
     if stalled and steps < max_steps:
         print(f"[{label}] Gauss-Newton stalled after {steps} steps ({reason}): L-BFGS goes on from there",
               file=stream, flush=True)
+        before = Convergence(False, reason, steps, initial_loss, loss, time.perf_counter() - start, tuple(history),
+                             evaluations=evaluations)
         theta, after = fallback(theta, max_steps - steps)
-        before = Convergence(False, reason, steps, initial_loss, loss, time.perf_counter() - start - after.seconds,
-                             tuple(history), evaluations=evaluations)
         return theta, before.then(
             after,
             f"{after.reason}; L-BFGS's {after.steps} steps after {steps} of Gauss-Newton, which stalled ({reason})",
