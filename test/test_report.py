@@ -46,32 +46,40 @@ def test_train_records_each_fits_loss_per_step(trained):
     assert pkbkr["held_out_history"][pkbkr["kept_step"]] == pytest.approx(pkbkr["held_out_kept"])
 
 
-def test_stage_1s_record_counts_the_refinement_with_the_support_held(tmp_path, capsys):
+@pytest.mark.parametrize("drops, screened", [(1, None), (2, 1)], ids=["all bags screened", "one of two screened"])
+def test_stage_1s_record_counts_the_refinement_with_the_support_held(drops, screened, tmp_path, capsys):
     """A yielding fit is refined first with its support held, then free: the file's stage-1 record counts the steps,
     loss evaluations and losses of both runs (the campaign's refinement took 71 steps held and 3 free, and the
-    record said 3)."""
+    record said 3). Where the laws are screened on fewer bags than all, the held run is on those: its steps and
+    evaluations count, its losses (other bags') do not, and the reason says where it ran."""
     import re
 
     v = variant("soft_bearing")
-    bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=3)
+    bags = write_variant_bags(v, tmp_path / "bags", n_drops=drops, seed=3)
     rig = write_rig_yaml(v, tmp_path / "bags", overwrite=True)
     coeffs = tmp_path / "c.yaml"
     options = ["-p", "contact.friction:=paper", "-p", "training.contact_laws:=[hertz:1.5]",
                "-p", "training.axial_support:=yielding"]
-    assert main(["train", str(bags[0]), "--config", str(rig), *options, "--duration", "0.03", "--steps", "0",
+    if screened:
+        options += ["-p", f"training.screening_bags:={screened}"]
+    assert main(["train", *map(str, bags), "--config", str(rig), *options, "--duration", "0.03", "--steps", "0",
                  "-o", str(coeffs)]) == 0
     said = capsys.readouterr().err
+    held = " with the support held" + (f" on the screening's {screened} bag" if screened else "")
     runs = {which: re.search(rf"\[calibrate \S+ n=1.5 \+ yielding support, refined{which}\] (?:NOT )?converged after "
                              r"(\d+) steps \((\d+) loss evaluations\)", said)
-            for which in (" with the support held", "", " from the support grid[^]]*")}
+            for which in (held, "", " from the support grid[^]]*")}
     restarted = runs.pop(" from the support grid[^]]*")  # where the support grid's start was lower: counted too
     assert all(runs.values()), said[-3000:]
     steps, evaluations = (sum(int(run[i]) for run in [*runs.values(), restarted] if run) for i in (1, 2))
     calibration = yaml.safe_load(coeffs.read_text())["training"]["calibration"]
-    assert int(runs[" with the support held"][1]) > 0
+    assert int(runs[held][1]) > 0
     assert (calibration["steps"], calibration["evaluations"]) == (steps, evaluations), (calibration["steps"], runs)
-    assert len(calibration["loss_history"]) == steps + 1
-    assert "steps with the support held" in calibration["reason"]
+    on_all = steps - (int(runs[held][1]) if screened else 0)
+    assert len(calibration["loss_history"]) == on_all + 1
+    assert held in calibration["reason"]
+    first = re.search(r"\[calibrate \S+ n=1.5 \+ yielding support, refined step 0\] loss (\S+)", said)
+    assert screened is None or calibration["loss_history"][0] == pytest.approx(float(first[1]), rel=1e-6)
 
 
 def test_report_shows_the_calibration_the_lambda_path_and_figures(trained, tmp_path, capsys):

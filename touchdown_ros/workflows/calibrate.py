@@ -411,25 +411,26 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         )
 
     def refine(
-        law: ContactLaw, coordinates: Coordinates, x: np.ndarray, label: str, tolerance: float = settings.tolerance
+        law: ContactLaw, coordinates: Coordinates, x: np.ndarray, label: str, tolerance: float = settings.tolerance,
+        records: tuple[Batch, ...] = chunks,
     ) -> tuple[np.ndarray, Convergence]:
-        """`law` with `coordinates` fitted on all records from x (`training.refinement`: `gauss_newton`, or
-        `minimise`'s L-BFGS)."""
-        refined, bounds = problem(law, chunks, coordinates), bounds_of(coordinates)
+        """`law` with `coordinates` fitted on `records` (all by default) from x (`training.refinement`:
+        `gauss_newton`, or `minimise`'s L-BFGS)."""
+        refined, bounds = problem(law, records, coordinates), bounds_of(coordinates)
         if not by_gauss_newton:
             return minimise(refined.objective, x, settings.calibration_steps, tolerance, label, stream, describe,
                             bounds=bounds)
         directions = coordinates.directions(most_free)
         precision = 1.0 / coordinates.prior_sd(settings.prior_width, clearance_prior_sd) ** 2
+        samples = int(sum(np.sum(np.asarray(batch.valid)) for batch in records))
 
         def terms(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
             """J, its gradient and its Gauss-Newton Hessian at x (the information kept for the standard errors)."""
-            key = (law.label, coordinates.start.tobytes(), x.tobytes())
-            got = newton_terms[key] = stage1_gauss_newton_over(
-                chunks, coordinates.theta(x), directions, *refined.arguments, **static
-            )
+            got = stage1_gauss_newton_over(records, coordinates.theta(x), directions, *refined.arguments, **static)
+            if records is chunks:
+                newton_terms[(law.label, coordinates.start.tobytes(), x.tobytes())] = got
             free = len(x)
-            return got.value, got.gradient[:free], 2.0 * (got.information[:free, :free] + np.diag(precision)) / n_valid
+            return got.value, got.gradient[:free], 2.0 * (got.information[:free, :free] + np.diag(precision)) / samples
 
         def by_lbfgs(x: np.ndarray, steps: int) -> tuple[np.ndarray, Convergence]:
             ahead.wait(RING_REFINEMENT_PROGRAM)  # with a spinning ring (else none is queued)
@@ -598,6 +599,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     if by_gauss_newton:
         ahead.wait(GAUSS_NEWTON_PROGRAM)
 
+    # The refinement with the support held runs on the screening's bags where they are fewer than all.
+    held_records = chunks if len(screen_data.paths) == len(data.paths) else (screen_batch,)
+    screened_bags = len(screen_data.paths)
+    held_on = "" if held_records is chunks else f" on the screening's {screened_bags} bag{'s' * (screened_bags > 1)}"
+
     def refine_finalist(c: Candidate, label: str, required: bool = True) -> Candidate | None:
         """A screened candidate refined on all records (with a spinning ring restarted from the friction grid
         where that lowers its loss); None where it does not converge and is not `required` (an extra start)."""
@@ -606,11 +612,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             # The constants first, the support held at its screened knee: moved together, a constant
             # still far from its optimum (damping, on few bags) can carry the knee above every impact,
             # where the loss no longer depends on it and it stays. (By Gauss-Newton to the screening's tolerance:
-            # the fit with the support free goes on from there, which takes fewer steps in all.)
+            # the fit with the support free goes on from there, which takes fewer steps in all.) On the screening's
+            # bags, where they are fewer than all: there its steps cost a chunk's evaluation, not every chunk's, and
+            # the constants' long walks (the friction's, on the campaign) are walked there.
             held = Coordinates(c.coordinates.theta(c.x), flags(support=False))
             x_held, held_convergence = refine(
-                c.law, held, held.initial(), f"calibrate {label}, refined with the support held",
-                screen_tolerance if by_gauss_newton else settings.tolerance,
+                c.law, held, held.initial(), f"calibrate {label}, refined with the support held{held_on}",
+                screen_tolerance if by_gauss_newton else settings.tolerance, records=held_records,
             )
             x = c.coordinates.initial(**held.theta(x_held)._asdict())
         loss = problem(c.law, chunks, c.coordinates).loss
@@ -625,6 +633,11 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             x, again = refine(c.law, c.coordinates, restart, f"calibrate {label}, refined from the friction restart")
             convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
             stalled = False
+        if c.yields and thorough and held_records is not chunks:
+            # its losses are the screening bags', not the fit's on all: its steps, evaluations and seconds count,
+            # its losses start the record at its end, on all records
+            at_end = convergence.initial_loss
+            held_convergence = dataclasses.replace(held_convergence, initial_loss=at_end, final_loss=at_end, history=())
         if c.yields and thorough and stalled and held_convergence.converged:
             # No step from the held fit's end lowered the loss (the line search gave up there): that end
             # is where the support's coordinates, free, do not move it, so it stands.
@@ -633,7 +646,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             )
         elif c.yields and thorough:
             convergence = held_convergence.then(
-                convergence, f"{convergence.reason}; after {held_convergence.steps} steps with the support held"
+                convergence, f"{convergence.reason}; after {held_convergence.steps} steps with the support held{held_on}"
             )
         if not (required or convergence.converged):
             return None
