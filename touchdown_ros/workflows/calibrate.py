@@ -645,9 +645,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
                 held_convergence, reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}"
             )
         elif c.yields and thorough:
-            convergence = held_convergence.then(
-                convergence, f"{convergence.reason}; after {held_convergence.steps} steps with the support held{held_on}"
-            )
+            held_steps = f"{held_convergence.steps} steps with the support held{held_on}"
+            convergence = held_convergence.then(convergence, f"{convergence.reason}; after {held_steps}")
         if not (required or convergence.converged):
             return None
         require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
