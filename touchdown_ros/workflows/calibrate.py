@@ -599,14 +599,15 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     if by_gauss_newton:
         ahead.wait(GAUSS_NEWTON_PROGRAM)
 
-    # The refinement with the support held runs on the screening's bags where they are fewer than all.
+    # The refinement with the support held: on the screening's bags where they are fewer than all.
     held_records = chunks if len(screen_data.paths) == len(data.paths) else (screen_batch,)
     screened_bags = len(screen_data.paths)
     held_on = "" if held_records is chunks else f" on the screening's {screened_bags} bag{'s' * (screened_bags > 1)}"
 
     def refine_finalist(c: Candidate, label: str, required: bool = True) -> Candidate | None:
-        """A screened candidate refined on all records (with a spinning ring restarted from the friction grid
-        where that lowers its loss); None where it does not converge and is not `required` (an extra start)."""
+        """A screened candidate refined on all records (a yielding one first with its support held, on
+        `held_records`; with a spinning ring restarted from the friction grid where that lowers its loss); None
+        where it does not converge and is not `required` (an extra start)."""
         x = c.x
         if c.yields and thorough:
             # The constants first, the support held at its screened knee: moved together, a constant
