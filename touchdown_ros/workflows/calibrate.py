@@ -600,8 +600,8 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         ahead.wait(GAUSS_NEWTON_PROGRAM)
 
     # The refinement with the support held: on the screening's bags where they are fewer than all.
-    held_records = chunks if len(screen_data.paths) == len(data.paths) else (screen_batch,)
     screened_bags = len(screen_data.paths)
+    held_records = chunks if screened_bags == len(data.paths) else (screen_batch,)
     held_on = "" if held_records is chunks else f" on the screening's {screened_bags} bag{'s' * (screened_bags > 1)}"
 
     def refine_finalist(c: Candidate, label: str, required: bool = True) -> Candidate | None:
@@ -634,20 +634,24 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             x, again = refine(c.law, c.coordinates, restart, f"calibrate {label}, refined from the friction restart")
             convergence = after_restart(convergence, again, "friction", settings.calibration_steps)
             stalled = False
-        if c.yields and thorough and held_records is not chunks:
-            # its losses are the screening bags', not the fit's on all: its steps, evaluations and seconds count,
-            # its losses start the record at its end, on all records
-            at_end = convergence.initial_loss
-            held_convergence = dataclasses.replace(held_convergence, initial_loss=at_end, final_loss=at_end, history=())
-        if c.yields and thorough and stalled and held_convergence.converged:
-            # No step from the held fit's end lowered the loss (the line search gave up there): that end
-            # is where the support's coordinates, free, do not move it, so it stands.
-            x, convergence = x_start, dataclasses.replace(
-                held_convergence, reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}"
-            )
-        elif c.yields and thorough:
-            held_steps = f"{held_convergence.steps} steps with the support held{held_on}"
-            convergence = held_convergence.then(convergence, f"{convergence.reason}; after {held_steps}")
+        if c.yields and thorough:
+            if held_records is not chunks:
+                # its losses are the screening bags', not the fit's on all: its steps, evaluations and seconds
+                # count, its losses start the record at its end, on all records
+                at_end = convergence.initial_loss
+                held_convergence = dataclasses.replace(
+                    held_convergence, initial_loss=at_end, final_loss=at_end, history=()
+                )
+            if stalled and held_convergence.converged:
+                # No step from the held fit's end lowered the loss (the line search gave up there): that end
+                # is where the support's coordinates, free, do not move it, so it stands.
+                x, convergence = x_start, dataclasses.replace(
+                    held_convergence,
+                    reason=f"{held_convergence.reason}; then with the support free: {convergence.reason}",
+                )
+            else:
+                held_steps = f"{held_convergence.steps} steps with the support held{held_on}"
+                convergence = held_convergence.then(convergence, f"{convergence.reason}; after {held_steps}")
         if not (required or convergence.converged):
             return None
         require_convergence(convergence, f"stage 1 ({c.name})", data.paths, "-p training.calibration_steps:=N")
