@@ -460,6 +460,28 @@ def test_the_report_says_how_to_add_the_named_effect_from_the_diagnosed_file():
     assert next_step({**model, "verdict": {"explained": False, "best": "brake_decay"}}) is None
 
 
+def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
+    """diagnosis.md under a verdict: each fitted parameter of the named effect with its 95 % interval relative to
+    its value, and where one is wider than +- 10 %, about how many drops like these would pin it (n (w / 10 %)^2)."""
+    from touchdown_ros.workflows.report.diagnosis import how_well_sized
+
+    def parameter(value: float, std: float) -> dict:
+        return {"value": value, "std": std, "unit": "N s/m", "per_bag": {"a": value, "b": value}}
+
+    drag = {"candidate": "viscous_friction", "fitted": True,
+            "parameters": {"c_radial": parameter(2983.0, 45.0), "c_axial": parameter(4595.0, 900.0)}}
+    other = {"candidate": "radial_load", "fitted": True, "parameters": {"force_x": parameter(300.0, 100.0)}}
+    verdict = {"explained": True, "best": "viscous_friction", "candidates": [other, drag]}
+    assert how_well_sized(verdict) == (
+        "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 4595 N s/m +- 38 %. "
+        "c_axial is not pinned to +- 10 %: about 30 drops like these would be (the interval narrows as "
+        "1 / sqrt(drops)).")
+    pinned = {**drag, "parameters": {"c_radial": parameter(2983.0, 45.0)}}
+    assert how_well_sized({**verdict, "candidates": [pinned]}).endswith("c_radial 2983 N s/m +- 3 %.")
+    assert how_well_sized({**verdict, "explained": False}) is None
+    assert how_well_sized({**verdict, "candidates": [other]}) is None  # the named effect was not fitted
+
+
 def test_residual_tests_see_white_and_coloured_sequences():
     rng = np.random.default_rng(0)
     white = rng.standard_normal(4000)

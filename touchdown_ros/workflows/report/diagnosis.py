@@ -18,6 +18,8 @@ if TYPE_CHECKING:  # the workflow imports this module to write its results
     from touchdown_ros.workflows.diagnose import Diagnosis, Settings
 
 CONSTANT_MODEL = "constant model (rig nominal values)"  # what a diagnosis without a coefficient file is of
+#: Relative half-width of a 95 % interval below which the report calls a fitted size pinned (issue 16's 10 %).
+SIZE_TOLERANCE = 0.10
 
 
 def write_diagnosis(diagnoses: Sequence[Diagnosis], config: Config, out: Path, settings: Settings) -> dict[str, Any]:
@@ -230,6 +232,9 @@ def markdown(document: dict[str, Any]) -> str:
         step = next_step(m)
         if step:
             lines += [step, ""]
+        sized = how_well_sized(v)
+        if sized:
+            lines += [sized, ""]
         if "frols" in v:
             lines += [*fitted_markdown(v), "", f"FROLS (the first pass that chose them): {v['frols_text']}.", ""]
         lines += [
@@ -278,6 +283,39 @@ def next_step(model: dict[str, Any]) -> str | None:
     start, before = (f" --start {coefficients}", f" --coeffs {coefficients}") if from_file else ("", "")
     return (f"To add it: `touchdown train BAG... -o with_{best}.yaml{start} -p 'effects.active:=[{active}]'`, then "
             f"`touchdown diagnose BAG...{before} --compare with_{best}.yaml` (docs/workbench.md).")
+
+
+def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
+    """How tightly the bags pin the named effect's fitted parameters (95 % intervals, relative), and where one is
+    wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
+    1 / sqrt(drops) if each drop adds as much information); None where the verdict names no fitted effect."""
+    if not verdict.get("explained"):
+        return None
+    row = next((r for r in verdict.get("candidates", ()) if r.get("fitted") and r["candidate"] == verdict["best"]),
+               None)
+    if row is None:
+        return None
+    widths, loose = [], []
+    for name, p in row["parameters"].items():
+        value, sd = float(p["value"]), float(p["std"])
+        if not (np.isfinite(sd) and value != 0.0):
+            widths.append(f"{name} {value:.4g} {p['unit']} (no standard error)")
+            continue
+        half = 1.96 * sd / abs(value)
+        widths.append(f"{name} {value:.4g} {p['unit']} +- {100 * half:.0f} %")
+        if half > tolerance:
+            loose.append((name, half))
+    bags = max((len(p.get("per_bag") or {}) for p in row["parameters"].values()), default=0)
+    drops = f"{bags} drop{'s' if bags != 1 else ''}" if bags else "these bags"
+    text = f"How tightly {drops} pin its size (95 % intervals): {', '.join(widths)}."
+    if loose:
+        names = " and ".join(name for name, _ in loose)
+        text += f" {names} {'is' if len(loose) == 1 else 'are'} not pinned to +- {100 * tolerance:.0f} %"
+        if bags:
+            needed = int(np.ceil(bags * max(half for _, half in loose) ** 2 / tolerance ** 2))
+            text += f": about {needed} drops like these would be (the interval narrows as 1 / sqrt(drops))"
+        text += "."
+    return text
 
 
 def fitted_markdown(v: dict[str, Any]) -> list[str]:
