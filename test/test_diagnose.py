@@ -478,6 +478,9 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
         "1 / sqrt(drops)).")
     pinned = {**drag, "parameters": {"c_radial": parameter(2983.0, 45.0)}}
     assert how_well_sized({**verdict, "candidates": [pinned]}).endswith("c_radial 2983 N s/m +- 3 %.")
+    at_bound = {**drag, "parameters": {"c_radial": parameter(0.0, 45.0), "c_axial": parameter(3000.0, 150.0)}}
+    assert how_well_sized({**verdict, "candidates": [at_bound]}) == (
+        "How tightly 2 drops pin its size (95 % intervals): c_radial 0 +- 88 N s/m, c_axial 3000 N s/m +- 10 %.")
     assert how_well_sized({**verdict, "explained": False}) is None
     assert how_well_sized({**verdict, "candidates": [other]}) is None  # the named effect was not fitted
 

@@ -298,8 +298,11 @@ def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -
     widths, loose = [], []
     for name, p in row["parameters"].items():
         value, sd = float(p["value"]), float(p["std"])
-        if not (np.isfinite(sd) and value != 0.0):
+        if not np.isfinite(sd):
             widths.append(f"{name} {value:.4g} {p['unit']} (no standard error)")
+            continue
+        if value == 0.0:  # at a bound: the interval in the parameter's unit
+            widths.append(f"{name} 0 +- {1.96 * sd:.2g} {p['unit']}")
             continue
         half = 1.96 * sd / abs(value)
         widths.append(f"{name} {value:.4g} {p['unit']} +- {100 * half:.0f} %")
