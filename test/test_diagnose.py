@@ -475,7 +475,7 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
     assert how_well_sized(verdict) == (
         "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 4595 N s/m +- 38 %. "
         "c_axial is not pinned to +- 10 %: about 30 drops like these would be (the interval narrows as "
-        "1 / sqrt(drops)).")
+        "1 / sqrt(drops)). The intervals are the fit's scatter; a bias from a force the model lacks does not narrow.")
     pinned = {**drag, "parameters": {"c_radial": parameter(2983.0, 45.0)}}
     assert how_well_sized({**verdict, "candidates": [pinned]}).endswith("c_radial 2983 N s/m +- 3 %.")
     at_bound = {**drag, "parameters": {"c_radial": parameter(0.0, 45.0), "c_axial": parameter(3000.0, 150.0)}}

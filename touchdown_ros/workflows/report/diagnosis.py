@@ -288,7 +288,8 @@ def next_step(model: dict[str, Any]) -> str | None:
 def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
     """How tightly the bags pin the named effect's fitted parameters (95 % intervals, relative), and where one is
     wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
-    1 / sqrt(drops) if each drop adds as much information); None where the verdict names no fitted effect."""
+    1 / sqrt(drops) if each drop adds as much information; a bias does not narrow so); None where the verdict names no
+    fitted effect."""
     if not verdict.get("explained"):
         return None
     row = next((r for r in verdict.get("candidates", ()) if r.get("fitted") and r["candidate"] == verdict["best"]),
@@ -317,7 +318,7 @@ def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -
         if bags:
             needed = int(np.ceil(bags * max(half for _, half in loose) ** 2 / tolerance ** 2))
             text += f": about {needed} drops like these would be (the interval narrows as 1 / sqrt(drops))"
-        text += "."
+        text += ". The intervals are the fit's scatter; a bias from a force the model lacks does not narrow."
     return text
 
 
