@@ -465,24 +465,29 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
     its value, and where one is wider than +- 10 %, about how many drops like these would pin it (n (w / 10 %)^2)."""
     from touchdown_ros.workflows.report.diagnosis import how_well_sized
 
-    def parameter(value: float, std: float) -> dict:
-        return {"value": value, "std": std, "unit": "N s/m", "per_bag": {"a": value, "b": value}}
+    def parameter(value: float, std: float) -> dict:  # as `candidates.candidate_rows` writes it
+        return {"value": value, "std": std, "ci95": [value - 1.96 * std, value + 1.96 * std], "unit": "N s/m",
+                "per_bag": {"a": value, "b": value}}
 
     drag = {"candidate": "viscous_friction", "fitted": True,
             "parameters": {"c_radial": parameter(2983.0, 45.0), "c_axial": parameter(4595.0, 900.0)}}
     other = {"candidate": "radial_load", "fitted": True, "parameters": {"force_x": parameter(300.0, 100.0)}}
     verdict = {"explained": True, "best": "viscous_friction", "candidates": [other, drag]}
-    assert how_well_sized(verdict) == (
+
+    def diagnosed(**changes) -> dict:  # a model of diagnosis.json, its two bags diagnosed
+        return {"bags": {"a": {}, "b": {}}, "verdict": {**verdict, **changes}}
+
+    assert how_well_sized(diagnosed()) == (
         "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 4595 N s/m +- 38 %. "
         "c_axial is not pinned to +- 10 %: about 30 drops like these would be (the interval narrows as "
         "1 / sqrt(drops)). The intervals are the fit's scatter; a bias from a force the model lacks does not narrow.")
     pinned = {**drag, "parameters": {"c_radial": parameter(2983.0, 45.0)}}
-    assert how_well_sized({**verdict, "candidates": [pinned]}).endswith("c_radial 2983 N s/m +- 3 %.")
+    assert how_well_sized(diagnosed(candidates=[pinned])).endswith("c_radial 2983 N s/m +- 3 %.")
     at_bound = {**drag, "parameters": {"c_radial": parameter(0.0, 45.0), "c_axial": parameter(3000.0, 150.0)}}
-    assert how_well_sized({**verdict, "candidates": [at_bound]}) == (
+    assert how_well_sized(diagnosed(candidates=[at_bound])) == (
         "How tightly 2 drops pin its size (95 % intervals): c_radial 0 +- 88 N s/m, c_axial 3000 N s/m +- 10 %.")
-    assert how_well_sized({**verdict, "explained": False}) is None
-    assert how_well_sized({**verdict, "candidates": [other]}) is None  # the named effect was not fitted
+    assert how_well_sized(diagnosed(explained=False)) is None
+    assert how_well_sized(diagnosed(candidates=[other])) is None  # the named effect was not fitted
 
 
 def test_residual_tests_see_white_and_coloured_sequences():

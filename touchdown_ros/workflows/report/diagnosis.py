@@ -232,7 +232,7 @@ def markdown(document: dict[str, Any]) -> str:
         step = next_step(m)
         if step:
             lines += [step, ""]
-        sized = how_well_sized(v)
+        sized = how_well_sized(m)
         if sized:
             lines += [sized, ""]
         if "frols" in v:
@@ -285,11 +285,12 @@ def next_step(model: dict[str, Any]) -> str | None:
             f"`touchdown diagnose BAG...{before} --compare with_{best}.yaml` (docs/workbench.md).")
 
 
-def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
-    """How tightly the bags pin the named effect's fitted parameters (95 % intervals, relative), and where one is
-    wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
+def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
+    """How tightly the model's bags pin the named effect's fitted parameters (their `ci95`, relative), and where one
+    is wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
     1 / sqrt(drops) if each drop adds as much information; a bias does not narrow so); None where the verdict names no
     fitted effect."""
+    verdict = model["verdict"]
     if not verdict.get("explained"):
         return None
     row = next((r for r in verdict.get("candidates", ()) if r.get("fitted") and r["candidate"] == verdict["best"]),
@@ -298,27 +299,25 @@ def how_well_sized(verdict: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -
         return None
     widths, loose = [], []
     for name, p in row["parameters"].items():
-        value, sd = float(p["value"]), float(p["std"])
-        if not np.isfinite(sd):
+        value, (low, high) = float(p["value"]), map(float, p["ci95"])
+        if not np.isfinite(high - low):
             widths.append(f"{name} {value:.4g} {p['unit']} (no standard error)")
             continue
         if value == 0.0:  # at a bound: the interval in the parameter's unit
-            widths.append(f"{name} 0 +- {1.96 * sd:.2g} {p['unit']}")
+            widths.append(f"{name} 0 +- {(high - low) / 2:.2g} {p['unit']}")
             continue
-        half = 1.96 * sd / abs(value)
+        half = (high - low) / 2 / abs(value)
         widths.append(f"{name} {value:.4g} {p['unit']} +- {100 * half:.0f} %")
         if half > tolerance:
             loose.append((name, half))
-    bags = max((len(p.get("per_bag") or {}) for p in row["parameters"].values()), default=0)
-    drops = f"{bags} drop{'s' if bags != 1 else ''}" if bags else "these bags"
-    text = f"How tightly {drops} pin its size (95 % intervals): {', '.join(widths)}."
+    drops = len(model["bags"])
+    text = f"How tightly {drops} drop{'s' * (drops != 1)} pin its size (95 % intervals): {', '.join(widths)}."
     if loose:
         names = " and ".join(name for name, _ in loose)
-        text += f" {names} {'is' if len(loose) == 1 else 'are'} not pinned to +- {100 * tolerance:.0f} %"
-        if bags:
-            needed = int(np.ceil(bags * max(half for _, half in loose) ** 2 / tolerance ** 2))
-            text += f": about {needed} drops like these would be (the interval narrows as 1 / sqrt(drops))"
-        text += ". The intervals are the fit's scatter; a bias from a force the model lacks does not narrow."
+        needed = int(np.ceil(drops * max(half for _, half in loose) ** 2 / tolerance ** 2))
+        text += (f" {names} {'is' if len(loose) == 1 else 'are'} not pinned to +- {100 * tolerance:.0f} %: about "
+                 f"{needed} drops like these would be (the interval narrows as 1 / sqrt(drops)). The intervals are "
+                 "the fit's scatter; a bias from a force the model lacks does not narrow.")
     return text
 
 
