@@ -19,6 +19,7 @@ from touchdown_ros.core.calibration import (
     sensor_noise,
     information_standard_errors,
     strongest_correlations,
+    strongest_partner,
 )
 from touchdown_ros.core.diagnostics.regressors import force_equivalent
 from touchdown_ros.core import dynamics
@@ -655,6 +656,10 @@ def test_standard_errors_of_a_known_information():
     np.testing.assert_allclose(sd, [0.2, 0.1], rtol=1e-12)
     assert correlation[0, 1] == pytest.approx(0.9, rel=1e-12)
     assert strongest_correlations(["a", "b"], correlation) == [("a", "b", pytest.approx(0.9))]
+    # each coordinate's strongest partner by |r|, its sign kept, never itself
+    three = np.array([[1.0, 0.3, -0.8], [0.3, 1.0, 0.5], [-0.8, 0.5, 1.0]])
+    assert strongest_partner(["c_axial", "c_radial", "c_Z"], three, 0) == ("c_Z", -0.8)
+    assert strongest_partner(["c_axial", "c_radial", "c_Z"], three, 1) == ("c_Z", 0.5)
     sd, _ = information_standard_errors(np.diag([1.0 / 0.04, 0.0]), prior_sd=np.array([np.inf, 1.6]))
     np.testing.assert_allclose(sd, [0.2, 1.6], rtol=1e-9)
     # where the filter diverged the information is not finite: no standard errors, no "Eigenvalues did not converge"

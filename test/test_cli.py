@@ -307,6 +307,13 @@ def test_diagnose_compiles_the_measures_and_the_standard_errors_once_ahead_besid
     ))
     assert [f.name for f in selection.fits] == ["none", "axial_load", "magnetic_stiffness"]
     assert all(f.sd for f in selection.fits[1:])
+    # each parameter's most correlated other coordinate of its fit (ln f0, the Q factors, the candidate's others)
+    for fit in selection.fits[1:]:
+        assert sorted(fit.partners) == sorted(fit.values)
+        for parameter, (partner, r) in fit.partners.items():
+            assert partner != f"{fit.name}.{parameter}" and -1.0 <= r <= 1.0 and r != 0.0
+            assert partner in {"k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR", "q_radial", "q_axial"} | {
+                f"{fit.name}.{p}" for p in fit.values}
     assert sorted(name for name, _ in compiled) == ["jit(sample_measures)", "jit(stage1_information)"]
     assert all(thread.startswith(THREAD_NAME) for _, thread in compiled)
 

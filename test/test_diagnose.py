@@ -488,6 +488,20 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
         "How tightly 2 drops pin its size (95 % intervals): c_radial 0 +- 88 N s/m, c_axial 3000 N s/m +- 10 %.")
     assert how_well_sized(diagnosed(explained=False)) is None
     assert how_well_sized(diagnosed(candidates=[other])) is None  # the named effect was not fitted
+    # a parameter that shares half its variance or more with another coordinate of its fit: which, and what it means
+    traded = {**drag, "parameters": {
+        "c_radial": {**parameter(2983.0, 45.0), "correlated_with": {"coordinate": "k_ZR", "r": 0.30}},
+        "c_axial": {**parameter(3000.0, 150.0), "correlated_with": {"coordinate": "c_Z", "r": -0.75}},
+    }}
+    assert how_well_sized(diagnosed(candidates=[traded])) == (
+        "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 3000 N s/m +- 10 %. "
+        "c_axial moves with c_Z, the face contact's damping (posterior correlation -0.75): the drops tell their joint "
+        "effect better than either, and where the model's form of the one differs from the rig's, the other's size "
+        "makes up for it.")
+    pair = {**drag, "parameters": {"c_axial": {**parameter(3000.0, 150.0), "correlated_with": {
+        "coordinate": "viscous_friction.c_radial", "r": 0.71}}}}
+    within = how_well_sized(diagnosed(candidates=[pair]))
+    assert "c_axial moves with its c_radial (posterior correlation +0.71)" in within
 
 
 def test_residual_tests_see_white_and_coloured_sequences():

@@ -684,6 +684,12 @@ def strongest_correlations(names: list[str], correlation: np.ndarray, count: int
     return sorted(pairs, key=lambda p: -abs(p[2]))[:count]
 
 
+def strongest_partner(names: Sequence[str], correlation: np.ndarray, index: int) -> tuple[str, float]:
+    """The coordinate other than `names[index]` most correlated with it (by |correlation|), and that correlation."""
+    partner = max((j for j in range(len(names)) if j != index), key=lambda j: abs(correlation[index, j]))
+    return names[partner], float(correlation[index, partner])
+
+
 #: Percentile of the in-contact deformations where the top row of kernel centres is placed.
 DEFORMATION_PERCENTILE = 95.0
 

@@ -27,6 +27,7 @@ from touchdown_ros.core.calibration import (
     stage1_model_and_noise,
     stage1_start,
     stage1_value_and_grad,
+    strongest_partner,
 )
 from touchdown_ros.core.orbit import candidate_starts
 from touchdown_ros.core.selection import (
@@ -107,6 +108,8 @@ class CandidateFit:
     parameters: int  # free coordinates of the fit (ln f0, ln q, the candidate's)
     convergence: Convergence
     per_bag: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)  # bag -> parameter -> (value, sd)
+    # parameter -> (the fit's other coordinate it is most correlated with, that correlation), from the posterior
+    partners: dict[str, tuple[str, float]] = field(default_factory=dict)
 
 
 @dataclass
@@ -315,10 +318,11 @@ def _fit_candidates(
         if diverged:
             print(f"[fit {name}{label}] its filter diverged from the start (the loss is not finite there): no "
                   "standard errors; it ranks last", file=stream, flush=True)
+        partners = {}
         if effect is not None:
             values = problem.physical(theta, effect.name)
             sd = dict.fromkeys(values, float("nan")) if diverged else _effect_sd(
-                problem, coordinates, x, batch, effect.name
+                problem, coordinates, x, batch, effect.name, partners
             )
         return CandidateFit(
             name=name,
@@ -330,6 +334,7 @@ def _fit_candidates(
             held_out=held_out_errors(measures, batch, phases),
             parameters=len(coordinates.names),
             convergence=convergence,
+            partners=partners,
         ), theta
 
     fits, thetas = [], {}
@@ -422,18 +427,22 @@ def _fit_candidates(
     return selection
 
 
-def _effect_sd(problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str) -> dict[str, float]:
+def _effect_sd(
+    problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str,
+    partners: dict[str, tuple[str, float]] | None = None,
+) -> dict[str, float]:
     """Standard errors (physical units) of one effect's fitted parameters from the Fisher information
-    of the fitted samples of `batch`."""
+    of the fitted samples of `batch` with the prior; into `partners`, each parameter's most correlated other
+    coordinate of the fit (a constant f0 by its name, e.g. c_Z) and that correlation."""
     information = problem.information(coordinates, x, batch)
     prior_sd = coordinates.prior_sd(problem.config.training.prior_width, problem.clearance_width)
-    sd, _ = information_standard_errors(information, prior_sd)
+    sd, correlation = information_standard_errors(information, prior_sd)
     scales = problem.scales.params[problem.effects.names.index(name)]
-    return {
-        n.split(".", 1)[1]: float(s) * scales[n.split(".", 1)[1]]
-        for n, s in zip(coordinates.names, sd)
-        if n.startswith(name + ".")
-    }
+    names = coordinates.names
+    own = [i for i, n in enumerate(names) if n.startswith(name + ".")]
+    if partners is not None and len(names) > 1:
+        partners.update({names[i].split(".", 1)[1]: strongest_partner(names, correlation, i) for i in own})
+    return {names[i].split(".", 1)[1]: float(sd[i]) * scales[names[i].split(".", 1)[1]] for i in own}
 
 
 def judged(selection: Selection) -> list[Judged]:
@@ -471,6 +480,8 @@ def candidate_rows(selection: Selection, frols_rows: Sequence[dict[str, Any]]) -
                 "unit": fit.units[k],
                 "per_bag": {bag: values[k][0] for bag, values in fit.per_bag.items()},
                 "per_bag_std": {bag: values[k][1] for bag, values in fit.per_bag.items()},
+                **({"correlated_with": {"coordinate": fit.partners[k][0], "r": fit.partners[k][1]}}
+                   if k in fit.partners else {}),
             }
         net = selection.k_step_net(fit)
         rows.append(

@@ -20,6 +20,18 @@ if TYPE_CHECKING:  # the workflow imports this module to write its results
 CONSTANT_MODEL = "constant model (rig nominal values)"  # what a diagnosis without a coefficient file is of
 #: Relative half-width of a 95 % interval below which the report calls a fitted size pinned (issue 16's 10 %).
 SIZE_TOLERANCE = 0.10
+#: Squared posterior correlation from which a fitted parameter is said to move with another coordinate of its fit:
+#: that coordinate then accounts for half its variance or more.
+SHARED_VARIANCE = 0.5
+#: The stage-1 coordinates a named effect's parameter can move with, in words.
+COORDINATE_WORDS = {
+    "k_R": "the bore contact's stiffness", "c_R": "the bore contact's damping", "mu": "the bore's friction",
+    "k_Z": "the face contact's stiffness", "c_Z": "the face contact's damping", "k_ZR": "the face's friction",
+    "q_radial": "the radial process noise", "q_axial": "the axial process noise",
+    "support_preload": "the axial support's knee", "support_span": "the axial support's span",
+    "radial_clearance": "the radial clearance", "axial_clearance": "the axial clearance",
+    "friction_drop": "the friction's Stribeck drop", "stribeck_velocity": "the Stribeck velocity",
+}
 
 
 def write_diagnosis(diagnoses: Sequence[Diagnosis], config: Config, out: Path, settings: Settings) -> dict[str, Any]:
@@ -80,7 +92,8 @@ def _write_csv(diagnoses: Sequence[Diagnosis], out: Path) -> None:
     with open(out / "ranking.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(
-            ["model", "rank", "candidate", "err_percent", "parameter", "value", "std", "ci95_low", "ci95_high", "unit"]
+            ["model", "rank", "candidate", "err_percent", "parameter", "value", "std", "ci95_low", "ci95_high", "unit",
+             "most_correlated_with", "correlation"]
         )
         for d in diagnoses:
             for row in d.verdict["candidates"]:
@@ -96,6 +109,8 @@ def _write_csv(diagnoses: Sequence[Diagnosis], out: Path) -> None:
                             p["std"],
                             *p["ci95"],
                             p["unit"],
+                            *((p["correlated_with"]["coordinate"], p["correlated_with"]["r"]) if "correlated_with" in p
+                              else ("", "")),
                         ]
                     )
 
@@ -318,7 +333,21 @@ def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> 
         text += (f" {names} {'is' if len(loose) == 1 else 'are'} not pinned to +- {100 * tolerance:.0f} %: about "
                  f"{needed} drops like these would be (the interval narrows as 1 / sqrt(drops)). The intervals are "
                  "the fit's scatter; a bias from a force the model lacks does not narrow.")
+    for name, p in row["parameters"].items():
+        partner = p.get("correlated_with")
+        if partner and partner["r"] ** 2 >= SHARED_VARIANCE:
+            text += (f" {name} moves with {_coordinate_words(partner['coordinate'], row['candidate'])} (posterior "
+                     f"correlation {partner['r']:+.2f}): the drops tell their joint effect better than either, and "
+                     "where the model's form of the one differs from the rig's, the other's size makes up for it.")
     return text
+
+
+def _coordinate_words(coordinate: str, effect: str) -> str:
+    """A fit's coordinate (`core.calibration.Coordinates.names`) in words, for a parameter of `effect`."""
+    if "." in coordinate:
+        owner, parameter = coordinate.split(".", 1)
+        return f"its {parameter}" if owner == effect else f"{owner}'s {parameter}"
+    return f"{coordinate}, {COORDINATE_WORDS[coordinate]}" if coordinate in COORDINATE_WORDS else coordinate
 
 
 def fitted_markdown(v: dict[str, Any]) -> list[str]:
