@@ -321,8 +321,8 @@ def _fit_candidates(
         partners = {}
         if effect is not None:
             values = problem.physical(theta, effect.name)
-            sd = dict.fromkeys(values, float("nan")) if diverged else _effect_sd(
-                problem, coordinates, x, batch, effect.name, partners
+            sd, partners = (dict.fromkeys(values, float("nan")), {}) if diverged else _effect_sd(
+                problem, coordinates, x, batch, effect.name
             )
         return CandidateFit(
             name=name,
@@ -421,28 +421,26 @@ def _fit_candidates(
                 objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}",
                 stream, bounds=problem.bounds(coordinates),
             )
-            sd = _effect_sd(problem, coordinates, x, batch, fit.name)
+            sd, _ = _effect_sd(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
     return selection
 
 
 def _effect_sd(
-    problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str,
-    partners: dict[str, tuple[str, float]] | None = None,
-) -> dict[str, float]:
-    """Standard errors (physical units) of one effect's fitted parameters from the Fisher information
-    of the fitted samples of `batch` with the prior; into `partners`, each parameter's most correlated other
-    coordinate of the fit (a constant f0 by its name, e.g. c_Z) and that correlation."""
+    problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str
+) -> tuple[dict[str, float], dict[str, tuple[str, float]]]:
+    """Standard errors (physical units) of one effect's fitted parameters from the Fisher information of the
+    fitted samples of `batch` with the prior, and each parameter's most correlated other coordinate of the fit (a
+    constant f0 by its name, e.g. c_Z) with that correlation."""
     information = problem.information(coordinates, x, batch)
     prior_sd = coordinates.prior_sd(problem.config.training.prior_width, problem.clearance_width)
     sd, correlation = information_standard_errors(information, prior_sd)
     scales = problem.scales.params[problem.effects.names.index(name)]
     names = coordinates.names
-    own = [i for i, n in enumerate(names) if n.startswith(name + ".")]
-    if partners is not None and len(names) > 1:
-        partners.update({names[i].split(".", 1)[1]: strongest_partner(names, correlation, i) for i in own})
-    return {names[i].split(".", 1)[1]: float(sd[i]) * scales[names[i].split(".", 1)[1]] for i in own}
+    own = {names[i].split(".", 1)[1]: i for i, n in enumerate(names) if n.startswith(name + ".")}
+    partners = {k: strongest_partner(names, correlation, i) for k, i in own.items()} if len(names) > 1 else {}
+    return {k: float(sd[i]) * scales[k] for k, i in own.items()}, partners
 
 
 def judged(selection: Selection) -> list[Judged]:
