@@ -485,23 +485,32 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
     assert how_well_sized(diagnosed(candidates=[pinned])).endswith("c_radial 2983 N s/m +- 3 %.")
     at_bound = {**drag, "parameters": {"c_radial": parameter(0.0, 45.0), "c_axial": parameter(3000.0, 150.0)}}
     assert how_well_sized(diagnosed(candidates=[at_bound])) == (
-        "How tightly 2 drops pin its size (95 % intervals): c_radial 0 +- 88 N s/m, c_axial 3000 N s/m +- 10 %.")
+        "How tightly 2 drops pin its size (95 % intervals): c_radial 0 +- 88 N s/m, c_axial 3000 N s/m +- 9.8 %.")
     assert how_well_sized(diagnosed(explained=False)) is None
     assert how_well_sized(diagnosed(candidates=[other])) is None  # the named effect was not fitted
-    # a parameter that shares half its variance or more with another coordinate of its fit: which, and what it means
+    # a parameter that shares half its variance or more with another coordinate of its fit: which, and what it means;
+    # a pair within the effect once; a dimensionless parameter without a unit
     traded = {**drag, "parameters": {
         "c_radial": {**parameter(2983.0, 45.0), "correlated_with": {"coordinate": "k_ZR", "r": 0.30}},
         "c_axial": {**parameter(3000.0, 150.0), "correlated_with": {"coordinate": "c_Z", "r": -0.75}},
     }}
     assert how_well_sized(diagnosed(candidates=[traded])) == (
-        "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 3000 N s/m +- 10 %. "
-        "c_axial moves with c_Z, the face contact's damping (posterior correlation -0.75): the drops tell their joint "
-        "effect better than either, and where the model's form of the one differs from the rig's, the other's size "
-        "makes up for it.")
-    pair = {**drag, "parameters": {"c_axial": {**parameter(3000.0, 150.0), "correlated_with": {
-        "coordinate": "viscous_friction.c_radial", "r": 0.71}}}}
-    within = how_well_sized(diagnosed(candidates=[pair]))
-    assert "c_axial moves with its c_radial (posterior correlation +0.71)" in within
+        "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 3000 N s/m +- 9.8 %. "
+        "Its size moves with another term of the fit: c_axial with c_Z, the face contact's damping (posterior "
+        "correlation -0.75). The drops tell such a pair's joint effect better than either, and where the model's form "
+        "of the one differs from the rig's, the other's size makes up for it.")
+    angle = {"candidate": "contact_angle_coupling", "fitted": True, "parameters": {
+        "k_radial": {**parameter(6.4e8, 6e6), "unit": "N/m",
+                     "correlated_with": {"coordinate": "contact_angle_coupling.tan_beta", "r": 1.0}},
+        "tan_beta": {**parameter(0.64, 0.006), "unit": "1",
+                     "correlated_with": {"coordinate": "contact_angle_coupling.k_radial", "r": 1.0}},
+    }}
+    assert how_well_sized({"bags": {"a": {}}, "verdict": {**verdict, "best": "contact_angle_coupling",
+                                                          "candidates": [angle]}}) == (
+        "How tightly 1 drop pins its size (95 % intervals): k_radial 6.4e+08 N/m +- 1.8 %, tan_beta 0.64 +- 1.8 %. "
+        "Its size moves with another term of the fit: k_radial with its tan_beta (posterior correlation +1.00). The "
+        "drops tell such a pair's joint effect better than either, and where the model's form of the one differs from "
+        "the rig's, the other's size makes up for it.")
 
 
 def test_residual_tests_see_white_and_coloured_sequences():

@@ -315,30 +315,38 @@ def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> 
     widths, loose = [], []
     for name, p in row["parameters"].items():
         value, (low, high) = float(p["value"]), map(float, p["ci95"])
+        unit = "" if p["unit"] == "1" else f" {p['unit']}"
         if not np.isfinite(high - low):
-            widths.append(f"{name} {value:.4g} {p['unit']} (no standard error)")
+            widths.append(f"{name} {value:.4g}{unit} (no standard error)")
             continue
         if value == 0.0:  # at a bound: the interval in the parameter's unit
-            widths.append(f"{name} 0 +- {(high - low) / 2:.2g} {p['unit']}")
+            widths.append(f"{name} 0 +- {(high - low) / 2:.2g}{unit}")
             continue
         half = (high - low) / 2 / abs(value)
-        widths.append(f"{name} {value:.4g} {p['unit']} +- {100 * half:.0f} %")
+        widths.append(f"{name} {value:.4g}{unit} +- {100 * half:.2g} %")
         if half > tolerance:
             loose.append((name, half))
     drops = len(model["bags"])
-    text = f"How tightly {drops} drop{'s' * (drops != 1)} pin its size (95 % intervals): {', '.join(widths)}."
+    pin = "drop pins" if drops == 1 else "drops pin"
+    text = f"How tightly {drops} {pin} its size (95 % intervals): {', '.join(widths)}."
     if loose:
         names = " and ".join(name for name, _ in loose)
         needed = int(np.ceil(drops * max(half for _, half in loose) ** 2 / tolerance ** 2))
         text += (f" {names} {'is' if len(loose) == 1 else 'are'} not pinned to +- {100 * tolerance:.0f} %: about "
                  f"{needed} drops like these would be (the interval narrows as 1 / sqrt(drops)). The intervals are "
                  "the fit's scatter; a bias from a force the model lacks does not narrow.")
+    pairs, said = [], set()
     for name, p in row["parameters"].items():
         partner = p.get("correlated_with")
-        if partner and partner["r"] ** 2 >= SHARED_VARIANCE:
-            text += (f" {name} moves with {_coordinate_words(partner['coordinate'], row['candidate'])} (posterior "
-                     f"correlation {partner['r']:+.2f}): the drops tell their joint effect better than either, and "
-                     "where the model's form of the one differs from the rig's, the other's size makes up for it.")
+        pair = frozenset({f"{row['candidate']}.{name}", partner["coordinate"]}) if partner else None
+        if partner and partner["r"] ** 2 >= SHARED_VARIANCE and pair not in said:
+            said.add(pair)
+            pairs.append(f"{name} with {_coordinate_words(partner['coordinate'], row['candidate'])} (posterior "
+                         f"correlation {partner['r']:+.2f})")
+    if pairs:
+        text += (f" Its size moves with another term of the fit: {'; '.join(pairs)}. The drops tell such a pair's "
+                 "joint effect better than either, and where the model's form of the one differs from the rig's, the "
+                 "other's size makes up for it.")
     return text
 
 
