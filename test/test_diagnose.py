@@ -477,6 +477,8 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
     def diagnosed(**changes) -> dict:  # a model of diagnosis.json, its two bags diagnosed
         return {"bags": {"a": {}, "b": {}}, "verdict": {**verdict, **changes}}
 
+    wide = {**drag, "parameters": {"c_axial": parameter(1000.0, 800.0)}}
+    assert "c_axial 1000 N s/m +- 157 %" in how_well_sized(diagnosed(candidates=[wide]))
     assert how_well_sized(diagnosed()) == (
         "How tightly 2 drops pin its size (95 % intervals): c_radial 2983 N s/m +- 3 %, c_axial 4595 N s/m +- 38 %. "
         "c_axial is not pinned to +- 10 %: about 30 drops like these would be (the interval narrows as "

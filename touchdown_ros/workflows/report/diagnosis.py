@@ -303,8 +303,9 @@ def next_step(model: dict[str, Any]) -> str | None:
 def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
     """How tightly the model's bags pin the named effect's fitted parameters (their `ci95`, relative), and where one
     is wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
-    1 / sqrt(drops) if each drop adds as much information; a bias does not narrow so); None where the verdict names no
-    fitted effect."""
+    1 / sqrt(drops) if each drop adds as much information; a bias does not narrow so), and the other terms of the fit
+    a parameter shares `SHARED_VARIANCE` of its variance or more with (`correlated_with`); None where the verdict names
+    no fitted effect."""
     verdict = model["verdict"]
     if not verdict.get("explained"):
         return None
@@ -323,7 +324,8 @@ def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> 
             widths.append(f"{name} 0 +- {(high - low) / 2:.2g}{unit}")
             continue
         half = (high - low) / 2 / abs(value)
-        widths.append(f"{name} {value:.4g}{unit} +- {100 * half:.2g} %")
+        widths.append(f"{name} {value:.4g}{unit} +- {100 * half:.0f} %" if half >= 0.1 else
+                      f"{name} {value:.4g}{unit} +- {100 * half:.2g} %")
         if half > tolerance:
             loose.append((name, half))
     drops = len(model["bags"])
