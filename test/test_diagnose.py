@@ -462,7 +462,8 @@ def test_the_report_says_how_to_add_the_named_effect_from_the_diagnosed_file():
 
 def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
     """diagnosis.md under a verdict: each fitted parameter of the named effect with its 95 % interval relative to
-    its value, and where one is wider than +- 10 %, about how many drops like these would pin it (n (w / 10 %)^2)."""
+    its value, and where one is wider than +- 10 %, about how many drops like these would pin it (n (w / 10 %)^2);
+    and the terms of the fit a parameter shares half its variance or more with (r^2 >= 0.5), each pair once."""
     from touchdown_ros.workflows.report.diagnosis import how_well_sized
 
     def parameter(value: float, std: float) -> dict:  # as `candidates.candidate_rows` writes it
