@@ -313,17 +313,17 @@ def _fit_candidates(
             problem.rescale(np.asarray(measures.states)[np.asarray(batch.valid)])
             phases = contact_phases(np.asarray(measures.states), config.contact_rig)
         fitted_rows = np.asarray(batch.valid) & ~np.asarray(batch.held_out)
-        values, sd = {}, {}
+        values, sd, partners = {}, {}, {}
         diverged = convergence.diverged
         if diverged:
             print(f"[fit {name}{label}] its filter diverged from the start (the loss is not finite there): no "
                   "standard errors; it ranks last", file=stream, flush=True)
-        partners = {}
         if effect is not None:
             values = problem.physical(theta, effect.name)
-            sd, partners = (dict.fromkeys(values, float("nan")), {}) if diverged else _effect_sd(
-                problem, coordinates, x, batch, effect.name
-            )
+            if diverged:
+                sd = dict.fromkeys(values, float("nan"))
+            else:
+                sd, partners = _effect_sd(problem, coordinates, x, batch, effect.name)
         return CandidateFit(
             name=name,
             values=values,

@@ -324,8 +324,8 @@ def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> 
             widths.append(f"{name} 0 +- {(high - low) / 2:.2g}{unit}")
             continue
         half = (high - low) / 2 / abs(value)
-        widths.append(f"{name} {value:.4g}{unit} +- {100 * half:.0f} %" if half >= 0.1 else
-                      f"{name} {value:.4g}{unit} +- {100 * half:.2g} %")
+        percent = f"{100 * half:.0f}" if half >= 0.1 else f"{100 * half:.2g}"
+        widths.append(f"{name} {value:.4g}{unit} +- {percent} %")
         if half > tolerance:
             loose.append((name, half))
     drops = len(model["bags"])
