@@ -516,6 +516,26 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
         "the rig's, the other's size makes up for it.")
 
 
+def test_the_fitted_candidates_table_prints_each_value_with_its_unit_and_a_dimensionless_one_bare():
+    """diagnosis.md's table of fitted candidates: `name = value +- sd unit`, no unit "1" after a gain."""
+    from touchdown_ros.workflows.report.diagnosis import fitted_markdown
+
+    def row(candidate: str, name: str, value: float, std: float, unit: str) -> dict:
+        return {"candidate": candidate, "fitted": True, "criterion": -40.0, "held_out_nll_fall": 0.01,
+                "k_step_fall": -0.3, "k_step_fall_net": -0.5, "k_step_fall_by_phase": {"free flight": -0.2},
+                "parameters": {name: {"value": value, "std": std, "unit": unit, "per_bag": {"a": value},
+                                      "per_bag_std": {"a": std}}}}
+
+    held = {"block_samples": 250, "every": 5, "measurement_noise_rms_m": [2e-6] * 3,
+            "baseline_k_step_rmse_m": [4e-6] * 3, "baseline_k_step_rmse_net_m": [3e-6] * 3}
+    lines = fitted_markdown({"held_out": held, "candidates": [row("sensor_gain_z", "gain", 1.05, 0.00069, "1"),
+                                                              row("axial_load", "force", 1917.0, 42.0, "N")]})
+    gain = next(line for line in lines if line.startswith("| sensor_gain_z | -40.0"))
+    load = next(line for line in lines if line.startswith("| axial_load | -40.0"))
+    assert "| gain = 1.05 +- 0.00069 | a 1.05 +- 0.00069 |" in gain
+    assert "| force = 1917 +- 42 N | a 1917 +- 42 |" in load
+
+
 def test_residual_tests_see_white_and_coloured_sequences():
     rng = np.random.default_rng(0)
     white = rng.standard_normal(4000)

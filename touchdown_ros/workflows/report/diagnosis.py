@@ -262,7 +262,7 @@ def markdown(document: dict[str, Any]) -> str:
         ]
         for c in v.get("frols", v["candidates"]):
             params = "; ".join(
-                f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']} ("
+                f"{_value_sd(n, p)} ("
                 + ", ".join(f"{bag} {val:.4g}" for bag, val in p["per_bag"].items())
                 + ")"
                 for n, p in c["parameters"].items()
@@ -300,6 +300,16 @@ def next_step(model: dict[str, Any]) -> str | None:
             f"`touchdown diagnose BAG...{before} --compare with_{best}.yaml` (docs/workbench.md).")
 
 
+def _unit_suffix(unit: str) -> str:
+    """The unit to print after a value, with its space; nothing for a dimensionless one (unit "1")."""
+    return "" if unit == "1" else f" {unit}"
+
+
+def _value_sd(name: str, parameter: dict[str, Any]) -> str:
+    """A fitted parameter as `name = value +- sd unit`."""
+    return f"{name} = {parameter['value']:.4g} +- {parameter['std']:.2g}{_unit_suffix(parameter['unit'])}"
+
+
 def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> str | None:
     """How tightly the model's bags pin the named effect's fitted parameters (their `ci95`, relative), and where one
     is wider than +- `tolerance`, about how many drops like these would narrow it to that (the interval narrows as
@@ -316,7 +326,7 @@ def how_well_sized(model: dict[str, Any], tolerance: float = SIZE_TOLERANCE) -> 
     widths, loose = [], []
     for name, p in row["parameters"].items():
         value, (low, high) = float(p["value"]), map(float, p["ci95"])
-        unit = "" if p["unit"] == "1" else f" {p['unit']}"
+        unit = _unit_suffix(p["unit"])
         if not np.isfinite(high - low):
             widths.append(f"{name} {value:.4g}{unit} (no standard error)")
             continue
@@ -382,9 +392,7 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
     for row in v["candidates"]:
         if not row["fitted"]:
             continue
-        values = "; ".join(
-            f"{n} = {p['value']:.4g} +- {p['std']:.2g} {p['unit']}" for n, p in row["parameters"].items()
-        )
+        values = "; ".join(_value_sd(n, p) for n, p in row["parameters"].items())
         per_bag = "; ".join(
             ", ".join(f"{bag} {value:.4g} +- {p['per_bag_std'][bag]:.2g}" for bag, value in p["per_bag"].items())
             for p in row["parameters"].values()
