@@ -345,6 +345,7 @@ def _fits(values: Mapping[str, float], errors: Mapping[str, float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global DROPS  # `simulate` reads it; a case's drops are numbered 1..DROPS
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", default="", help="comma-separated case or rig names (default: all)")
     parser.add_argument("--out", type=Path, default=Path("results-workbench"))
@@ -359,7 +360,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="a rig parameter override passed to every touchdown call")
     parser.add_argument("--simulator", action="append", default=[], metavar="NAME:=VALUE",
                         help="a change of every chosen case's simulated truth (a key under simulator.)")
+    parser.add_argument("--drops", type=int, default=DROPS, help=f"drops per case (default {DROPS})")
     args = parser.parse_args(argv)
+    if args.drops < 1:
+        parser.error(f"--drops: {args.drops}: at least one drop")
+    DROPS = args.drops
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
         parser.error(f"no such case; choose from {', '.join(c.name for c in CASES)}")
