@@ -39,7 +39,10 @@ def test_named_node_section_and_overrides(tmp_path):
     [
         (("mass: 240.0", "mass: -1.0"), "'rig.mass' must be > 0"),
         (("mass: 240.0", "mass: heavy"), "'rig.mass' must be a finite number"),
-        (("k_R: 5.0e+8", "k_R: 5.0e8"), "write 1.0e\\+8"),
+        (("k_R: 5.0e+8", "k_R: 5.0e8"),
+         "got '5.0e8' \\(YAML reads a number as text unless it has a decimal point and a signed exponent: write "
+         "1.0e\\+8 or 1.0e-5"),
+        (("k_R: 5.0e+8", "k_R: 5e+8"), "got '5e\\+8' \\(YAML reads a number as text"),
         (("mass: 240.0", "mass: 240.0\n      colour: red"), "unknown parameter\\(s\\): rig.colour"),
         (("      mass: 240.0                     # kg\n", ""), "missing parameter 'rig.mass'"),
         (("measurement_noise: 2.0e-6", "measurement_noise: [1, 2]"), "'filter.measurement_noise' must be a finite"),

@@ -408,6 +408,9 @@ def _truth():
         ("simulator.substeps", 2.5, "simulator.substeps"),
         ("simulator.ceramic.radial_stiffness", -1.0, "simulator.ceramic.radial_stiffness"),
         ("simulator.steel.axial_damping", "1.0e8", "simulator.steel.axial_damping"),
+        ("simulator.amb_decay_time", "1e-5",
+         "simulator.amb_decay_time' must be a finite number, got '1e-5' \\(YAML reads a number as text unless it has "
+         "a decimal point and a signed exponent"),
         ("simulator.amb_unbalance_compensation", 1.5, "simulator.amb_unbalance_compensation"),
         ("simulator.steel.friction_kinetic", 0.5, "simulator.steel.friction_kinetic"),
         ("simulator.variation", 0.5, "simulator.variation"),

@@ -38,10 +38,9 @@ class ParameterReader:
     def number(self, key: str, default: Any = ..., positive: bool = False, non_negative: bool = False) -> float:
         value = self._get(key, default)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            hint = ""
-            if isinstance(value, str) and _looks_numeric(value):
-                hint = " (YAML reads an exponent without sign as text: write 1.0e+8, not 1.0e8)"
-            raise ConfigError(f"{self.source}: parameter '{key}' must be a finite number, got {value!r}{hint}")
+            raise ConfigError(
+                f"{self.source}: parameter '{key}' must be a finite number, got {value!r}{number_text_hint(value)}"
+            )
         if positive and value <= 0:
             raise ConfigError(f"{self.source}: parameter '{key}' must be > 0, got {value!r}")
         if non_negative and value < 0:
@@ -94,6 +93,15 @@ class ParameterReader:
         ):
             raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of integers >= {minimum}")
         return tuple(value)
+
+
+def number_text_hint(value: Any) -> str:
+    """Why YAML read a number as text, for an error message: its float needs a decimal point and a signed exponent
+    (YAML 1.1); empty for anything else."""
+    if not (isinstance(value, str) and _looks_numeric(value)):
+        return ""
+    return (" (YAML reads a number as text unless it has a decimal point and a signed exponent: write 1.0e+8 or "
+            "1.0e-5, not 1.0e8, 1e+8 or 1e-5)")
 
 
 def _looks_numeric(text: str) -> bool:

@@ -9,6 +9,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from touchdown_ros.io.config import Config, ConfigError
+from touchdown_ros.io.parameters import number_text_hint
 from touchdown_ros.sim.physics import Truth
 
 BALLS = ("ceramic", "steel")
@@ -127,7 +128,7 @@ class SimulatorParameters:
 
 def _number(key: str, value: Any, low: float, high: float, low_inclusive: bool) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        hint = " (write exponents with a sign: 1.0e+8)" if isinstance(value, str) else ""
+        hint = number_text_hint(value)
         raise ConfigError(f"parameter 'simulator.{key}' must be a finite number, got {value!r}{hint}")
     below = value < low if low_inclusive else value <= low
     if below or value > high:
