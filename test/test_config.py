@@ -47,6 +47,8 @@ def test_named_node_section_and_overrides(tmp_path):
         (("      mass: 240.0                     # kg\n", ""), "missing parameter 'rig.mass'"),
         (("measurement_noise: 2.0e-6", "measurement_noise: [1, 2]"), "'filter.measurement_noise' must be a finite"),
         (("process_noise: [", "process_noise: [1.0, "), "'filter.process_noise' must have 7 values"),
+        (("process_noise: [", "process_noise: [1e-14, "),
+         "'filter.process_noise' must be a non-empty list of finite numbers; entry 1 is '1e-14' \\(YAML reads"),
         (("realtime_priority: 0 ", "realtime_priority: 100 "), "'node.realtime_priority' must be an integer in 0..99"),
         (("receive: drain ", "receive: polled "), "'node.receive' must be one of"),
         (("receive: drain ", "worker: true "), "node.worker: replaced by node.receive"),
