@@ -135,8 +135,8 @@ def scaled(case: Case, factor: float) -> Case:
     return case._replace(name=f"{case.name} x{factor:g}", simulator=simulator, truth=truth)
 
 
-def simulate(case: Case, out: Path) -> tuple[list[Path], Path, list[Truth]]:
-    """The case's drops, its rig file and each drop's truth constants."""
+def simulate(case: Case, out: Path, drops: int = DROPS) -> tuple[list[Path], Path, list[Truth]]:
+    """The case's drops (numbered 1..drops), its rig file and each drop's truth constants."""
     base = variant(case.rig)
     rig = dataclasses.replace(
         base,
@@ -144,11 +144,11 @@ def simulate(case: Case, out: Path) -> tuple[list[Path], Path, list[Truth]]:
         axial_load=case.axial_load,
         overrides={**base.overrides, **{f"simulator.{k}": v for k, v in case.simulator.items()}},
     )
-    bags = write_variant_bags(rig, out, n_drops=DROPS, overwrite=True)
+    bags = write_variant_bags(rig, out, n_drops=drops, overwrite=True)
     config = variant_config(rig)
     params = simulator_parameters(config)
     truths = []
-    for number in range(1, DROPS + 1):
+    for number in range(1, drops + 1):
         condition = rig.condition(number)
         rng = np.random.default_rng(np.random.SeedSequence([number, number]))  # as simulate_variant with seed 0
         truths.append(truth_constants(config, params, condition.ball, condition.brake, condition.axial_load, 0.0, rng))
@@ -188,14 +188,14 @@ def _second(verdict: dict) -> str | None:
 
 
 def run_case(
-    case: Case, out: Path, fit: int | None = None, params: list[str] = (), from_guess: bool = False
+    case: Case, out: Path, fit: int | None = None, params: list[str] = (), from_guess: bool = False, drops: int = DROPS
 ) -> dict:
     """Stage 1 on the case's drops, diagnose (adding what it names, as a user would), stage 1 with the
     true effect switched on, from the diagnosed file's calibration (`train --start`; `from_guess`: from the rig
     YAML's guess, as before 2026-12-05); the figures of its row."""
     started = time.perf_counter()
     shutil.rmtree(out, ignore_errors=True)
-    bags, rig, truths = simulate(case, out)
+    bags, rig, truths = simulate(case, out, drops)
     log = io.StringIO()
     overrides = [a for p in params for a in ("-p", p)]
 
@@ -345,7 +345,6 @@ def _fits(values: Mapping[str, float], errors: Mapping[str, float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    global DROPS  # `simulate` reads it; a case's drops are numbered 1..DROPS
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", default="", help="comma-separated case or rig names (default: all)")
     parser.add_argument("--out", type=Path, default=Path("results-workbench"))
@@ -364,7 +363,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.drops < 1:
         parser.error(f"--drops: {args.drops}: at least one drop")
-    DROPS = args.drops
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
         parser.error(f"no such case; choose from {', '.join(c.name for c in CASES)}")
@@ -384,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for case in chosen:
         row = run_case(case, args.out / f"{case.name.replace(' ', '_')}_{case.rig}", args.fit, args.param,
-                       args.from_guess)
+                       args.from_guess, args.drops)
         rows.append(row)
         # Each case compiles its own rig's programs; kept, they grew this process by about 1.4 GB a case
         # (11 GB after eight cases, 2026-12-02). The persistent compilation cache stays on disk.

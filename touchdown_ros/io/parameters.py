@@ -52,12 +52,11 @@ class ParameterReader:
         if not isinstance(value, list) or not value or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
         ):
-            entries = value if isinstance(value, list) else []
-            read_as_text = [(i, v) for i, v in enumerate(entries, 1) if number_text_hint(v)]
             why = ""
-            if read_as_text:
-                i, entry = read_as_text[0]
-                why = f"; entry {i} is {entry!r}{number_text_hint(entry)}"
+            for i, entry in enumerate(value if isinstance(value, list) else [], 1):
+                if hint := number_text_hint(entry):  # the first entry YAML read as text
+                    why = f"; entry {i} is {entry!r}{hint}"
+                    break
             raise ConfigError(f"{self.source}: parameter '{key}' must be a non-empty list of finite numbers{why}")
         if length is not None and len(value) != length:
             raise ConfigError(f"{self.source}: parameter '{key}' must have {length} values, got {len(value)}")
