@@ -267,3 +267,54 @@ def test_library_regressors_share_phi_and_equal_the_nested_definition(friction):
             expected_J = np.stack([np.asarray(jac[k]) for k in params], axis=-1)
             np.testing.assert_allclose(np.asarray(J[i]), expected_J, rtol=1e-9, atol=1e-9)
     assert np.abs(np.asarray(together["z_curvature"][1])).max() > 0.0
+
+
+def test_amb_release_decays_from_the_onset_and_each_rk4_stage_reads_its_own_time():
+    """The AMB's support of the weight letting go, share exp(-t / tau): the rotor at rest at the centre
+    accelerates at -g (1 - exp(-t / tau)), and one RK4 step (plain and with its Jacobian) from t0 gains the
+    exact integral of it to round-off (stages held at the step's start would miss it by ~g h^2 / (2 tau))."""
+    from touchdown_ros.core.dynamics import at_time, rk4_step, step_with_jacobian
+
+    base = load_config().model()
+    amb = fx.resolve("amb_release")
+    tau, h, t0 = 1.0e-3, 1.0e-4, 3.0e-4
+    model = base._replace(effects=fx.Effects((amb,), ({"share": 1.0, "decay_time": tau},)))
+    g, xi = base.rig.gravity, jnp.zeros(base.law.state_size)
+    for t in (0.0, tau, 5 * tau):
+        np.testing.assert_allclose(phi(at_time(model, t), xi)[6], -g * (1.0 - np.exp(-t / tau)), atol=1e-12)
+    exact = -g * h + g * tau * np.exp(-t0 / tau) * (1.0 - np.exp(-h / tau))
+    np.testing.assert_allclose(rk4_step(at_time(model, t0), xi, h)[6], exact, rtol=1e-6)
+    np.testing.assert_allclose(step_with_jacobian(at_time(model, t0), xi, h)[0][6], exact, rtol=1e-6)
+    assert "amb_release" not in fx.LIBRARY  # a term the user switches on, not a candidate of the workbench's
+
+
+def test_amb_release_is_the_rigs_pd_law_and_unbalance_compensation_and_the_filter_runs_it_in_time():
+    """With the rig's AMB constants the force is -gain (k x + c xdot + comp m e omega^2 (cos, sin) theta) plus
+    gain m g on z; the filter's scan gives step k the time k h: its priors follow the timed RK4 steps."""
+    from touchdown_ros.core.dynamics import at_time, rk4_step
+    from touchdown_ros.core.ekf import Belief, ekf
+
+    config = load_config(overrides={
+        "effects.active": ["amb_release"], "effects.amb_release.decay_time": 2.0e-3, "effects.amb_release.share": 0.8,
+        "rig.amb_stiffness": 2.0e6, "rig.amb_damping": 2.0e4, "rig.amb_unbalance_compensation": 0.7,
+    })
+    model, rig = config.model(), config.rig
+    rotor = [1e-5, -2e-5, 3e-5, 0.4, 0.01, 0.02, -0.03]
+    xi = jnp.asarray(rotor + [rig.speed] * (model.law.state_size - len(rotor)))  # a spinning ring with the rotor
+    t = 1.0e-3
+    gain = 0.8 * np.exp(-t / 2.0e-3)
+    comp = 0.7 * rig.mass * rig.eccentricity * rig.speed**2
+    expected = gain * np.array([
+        -2e6 * 1e-5 - 2e4 * 0.01 - comp * np.cos(0.4),
+        -2e6 * -2e-5 - 2e4 * 0.02 - comp * np.sin(0.4),
+        -2e6 * 3e-5 - 2e4 * -0.03 + rig.mass * rig.gravity,
+    ])
+    np.testing.assert_allclose(model._replace(effects=model.effects.at_time(t)).effects.force(xi, rig), expected,
+                               rtol=1e-12)
+    h, n = config.sample_period, 12
+    etas = jnp.full((n, 3), jnp.nan)  # predict only: the priors are the model's own steps
+    out = ekf(model, config.noise, h, Belief(xi, jnp.diag(config.noise.initial)), etas)
+    state = xi
+    for k in range(n - 1):
+        state = rk4_step(at_time(model, k * h), state, h)
+        np.testing.assert_allclose(out.prior.mean[k + 1], state, rtol=1e-10, atol=1e-16)

@@ -136,7 +136,8 @@ def force_scaled(scales: Effects, names: Sequence[str], states: Array, model: Mo
     that moves the effect's force by `force` N rms along the states (N, n), linearised at the
     effect's values in `model.effects` (its defaults if it is not there): every coordinate then
     moves the model alike, whatever its unit (a stiffness in N/m, a load in N, a drag in N s/m
-    started at 10 for 3000); a parameter that moves no force there keeps its scale."""
+    started at 10 for 3000); a parameter that moves no force there keeps its scale. A clocked effect is
+    linearised at the drop onset (its decay time then moves no force and keeps its scale)."""
     values = dict(zip(model.effects.names, model.effects.params))
     named = {e.name: e for e in scales.effects if e.name in names}
     at = {n: {k: float(v) for k, v in values[n].items()} for n in named if n in values}

@@ -216,6 +216,23 @@ def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces,
     return forces, jacobian
 
 
+def at_time(model: Model, t: Array | float) -> Model:
+    """The model t s after the drop onset: what its clocked effects read (`Effect.clocked`); the model
+    itself when it has none (static: then the time is not traced at all)."""
+    effects = getattr(model, "effects", None)
+    if effects and effects.clocked:
+        return model._replace(effects=effects.at_time(t))
+    return model
+
+
+def later(model: Model, dt: Array | float) -> Model:
+    """`at_time` dt s after the model's own time (an RK4 stage within a step)."""
+    effects = getattr(model, "effects", None)
+    if effects and effects.clocked:
+        return model._replace(effects=effects.at_time(effects.time + dt))
+    return model
+
+
 def rotor_speed(model: Model, xi: Array) -> tuple[Array, Array]:
     """The rotor's speed (rad/s) and its unbalance's angle (rad) at xi: the rig's constant speed and
     theta (eq. 12), unless speed effects move them (static: without, the paper's model unchanged)."""
@@ -278,13 +295,19 @@ def measurement(model: Model, xi: Array) -> Array:
     return position
 
 
-def rk4(rate: Callable[[Array], Array], xi: Array, h: float) -> Array:
-    """One classical Runge-Kutta step of length h (s) of d xi / dt = rate(xi) (eq. 15)."""
-    k1 = h * rate(xi)
-    k2 = h * rate(xi + 0.5 * k1)
-    k3 = h * rate(xi + 0.5 * k2)
-    k4 = h * rate(xi + k3)
+def rk4(rate: Callable[[Array, float], Array], xi: Array, h: float) -> Array:
+    """One classical Runge-Kutta step of length h (s) of d xi / dt = rate(xi, s) (eq. 15), s the stage's time
+    after the step's start (0, h / 2, h / 2, h)."""
+    k1 = h * rate(xi, 0.0)
+    k2 = h * rate(xi + 0.5 * k1, 0.5 * h)
+    k3 = h * rate(xi + 0.5 * k2, 0.5 * h)
+    k4 = h * rate(xi + k3, h)
     return xi + (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+
+
+def _stage_rate(model: Model, rate: Callable[[Model, Array], Array] | None = None) -> Callable[[Array, float], Array]:
+    """(state, s) -> the model's rate (phi unless `rate` is given) s seconds into the step."""
+    return lambda state, s: (rate or phi)(later(model, s), state)
 
 
 #: Bisections of the ring's implicit update: its bracket, at most h T / J wide (about 13 rad/s under 20 kN on the
@@ -357,8 +380,8 @@ def rk4_step(model: Model, xi: Array, h: float) -> Array:
     """f of eq. 15: one RK4 step of phi, of length h (s). With a spinning ring its speed is updated
     implicitly first (`ring_speed_after`), then carried along with the rotor's speed (`held_rate`)."""
     if model.law.spins_ring:
-        return rk4(functools.partial(held_rate, model), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
-    return rk4(lambda state: phi(model, state), xi, h)
+        return rk4(_stage_rate(model, held_rate), xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h)), h)
+    return rk4(_stage_rate(model), xi, h)
 
 
 def ring_update_jacobian(model: Model, held: Array, h: float) -> Array:
@@ -419,19 +442,22 @@ def step_with_jacobian_and_rate(model: Model, xi: Array, h: float) -> tuple[Arra
 def _ring_step_with_jacobian(model: Model, xi: Array, h: float) -> tuple[Array, Array]:
     """f(xi) and Phi_k with a spinning ring: its implicit speed update, then the held RK4 step."""
     held = xi.at[OMEGA_RING].set(ring_speed_after(model, xi, h))
-    mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, functools.partial(held_rate, model))
+    mean, Phi, _, _ = _rk4_with_jacobian(model, held, h, held_rate)
     return mean, Phi @ ring_update_jacobian(model, held, h)
 
 
 def _rk4_with_jacobian(
-    model: Model, xi: Array, h: float, rate_function: Callable[[Array], Array] | None = None
+    model: Model, xi: Array, h: float, rate_function: Callable[[Model, Array], Array] | None = None
 ) -> tuple[Array, Array, Array, Array]:
     I = jnp.eye(xi.shape[0], dtype=xi.dtype)  # noqa: E741 (the identity, as in the paper)
 
     def stage(carry, shift_and_weight):
         k, dk, total, dtotal = carry
         shift, weight = shift_and_weight
-        rate, A = phi_and_jacobian(model, xi + shift * k, rate_function)
+        staged = later(model, shift * h)
+        rate, A = phi_and_jacobian(
+            staged, xi + shift * k, functools.partial(rate_function, staged) if rate_function else None
+        )
         k, dk = h * rate, h * A @ (I + shift * dk)  # eq. 15b-e, 16b-e
         return (k, dk, total + weight * k, dtotal + weight * dk), (rate, A)
 

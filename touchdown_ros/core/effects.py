@@ -13,6 +13,11 @@ parameters and ``rig`` the `Rig`. Its `kind` says where it acts:
   m e omega^2 (cos, sin) angle and the friction's slip against a co-rotating ring use them
   (`dynamics.rotor_speed`). theta stays the clock: d theta / dt is the rig's speed.
 
+A `clocked` effect is a function of the time since the drop onset as well,
+``function(xi, params, rig, t)`` with t in s (the step's time in the filter's scan and in each
+RK4 stage, `dynamics.at_time`): a term that starts at the drop, such as the AMB's force as it
+lets go (`amb_release`).
+
 `Effects` is the JAX container held by `Model.effects`: the functions (and names) are
 static aux data, the parameter values are traced children, so jit/grad/vmap see the
 parameters and a change of which effects are active recompiles. With no effects
@@ -21,12 +26,14 @@ parameters and a change of which effects are active recompiles. With no effects
 Library (`LIBRARY`): force effects axial_load, radial_load, magnetic_stiffness,
 cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupling; measurement
 effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
-gain * position + offset on that axis; the speed effect brake_decay (a braked rotor).
+gain * position + offset on that axis; the speed effect brake_decay (a braked rotor); the clocked
+force amb_release (the AMB's force decaying after the drop, its PD law the rig's `amb_*`).
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
 (default, unit, description)), optionally ``bounds`` (name -> (low, high)) and, for a
-measurement effect, ``kind = "measurement"``, or is made by the `effect` decorator below.
+measurement effect, ``kind = "measurement"`` (``clocked = True``: it takes the time since the onset as a
+fourth argument), or is made by the `effect` decorator below.
 """
 from __future__ import annotations
 
@@ -66,12 +73,15 @@ class Effect:
     kind: str = FORCE  # one of KINDS
     bounds: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
     contact: bool = False  # a force through the bearing's contact (a contact angle): part of the contact force
+    clocked: bool = False  # a function of the time since the drop onset too: function(xi, params, rig, t)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"effect {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
         if self.contact and self.kind != FORCE:
             raise ValueError(f"effect {self.name!r}: only a force acts through the contact, not a {self.kind} effect")
+        if self.contact and self.clocked:
+            raise ValueError(f"effect {self.name!r}: a force through the contact cannot be clocked")
         for key, (low, high) in self.bounds.items():
             if key not in self.parameters or not low < high:
                 raise ValueError(f"effect {self.name!r}: bounds {key}: ({low}, {high}) name no parameter or are empty")
@@ -81,6 +91,10 @@ class Effect:
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
 
+    def __call__(self, xi: Array, params: Mapping[str, Array], rig, t: Array | float = 0.0) -> Array:
+        """The effect at state xi and time t (s since the drop onset; only a clocked effect reads it)."""
+        return self.function(xi, params, rig, t) if self.clocked else self.function(xi, params, rig)
+
 
 def effect(
     name: str,
@@ -89,43 +103,51 @@ def effect(
     kind: str = FORCE,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     contact: bool = False,
+    clocked: bool = False,
 ):
     """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `contact`: a
-    force through the bearing's contact, published as part of the contact force."""
+    force through the bearing's contact, published as part of the contact force; `clocked`: the function
+    takes the time since the drop onset (s) as a fourth argument."""
 
     def wrap(function: EffectFunction) -> Effect:
         text = description or (function.__doc__ or "")
-        return Effect(name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact)
+        return Effect(
+            name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact,
+            clocked=clocked,
+        )
 
     return wrap
 
 
 @jax.tree_util.register_pytree_node_class
 class Effects:
-    """Active effects: static (names, functions); traced parameters (tuple of dicts) and gates
-    (one factor per effect: 1 acts, 0 switched off, e.g. in a bag recorded without the loader)."""
+    """Active effects: static (names, functions); traced parameters (tuple of dicts), gates
+    (one factor per effect: 1 acts, 0 switched off, e.g. in a bag recorded without the loader) and
+    the time since the drop onset (s) at which clocked effects act."""
 
     def __init__(
         self,
         effects: tuple[Effect, ...] = (),
         params: tuple[Mapping[str, Array], ...] | None = None,
         gates: tuple | None = None,
+        time: Array | float = 0.0,
     ):
         self.effects = tuple(effects)
         if params is None:
             params = tuple(e.defaults() for e in self.effects)
         self.params = tuple(dict(p) for p in params)
         self.gates = tuple(gates) if gates is not None else (1.0,) * len(self.effects)
+        self.time = time
 
     # pytree protocol: the functions are aux data (hashable by identity), the values children
     def tree_flatten(self):
-        return (self.params, self.gates), self.effects
+        return (self.params, self.gates, self.time), self.effects
 
     @classmethod
     def tree_unflatten(cls, aux, children):
         obj = object.__new__(cls)
         obj.effects = aux
-        obj.params, obj.gates = tuple(children[0]), tuple(children[1])
+        obj.params, obj.gates, obj.time = tuple(children[0]), tuple(children[1]), children[2]
         return obj
 
     def __len__(self) -> int:
@@ -147,14 +169,23 @@ class Effects:
 
     def with_values(self, values: Mapping[str, Mapping[str, float]]) -> "Effects":
         params = tuple({k: values.get(e.name, {}).get(k, p[k]) for k in p} for e, p in zip(self.effects, self.params))
-        return Effects(self.effects, params, self.gates)
+        return Effects(self.effects, params, self.gates, self.time)
 
     def with_params(self, params: tuple[Mapping[str, Array], ...]) -> "Effects":
-        return Effects(self.effects, params, self.gates)
+        return Effects(self.effects, params, self.gates, self.time)
 
     def with_gates(self, gates) -> "Effects":
         """The same effects switched on (1) or off (0) each; gates may be a traced (n,) array."""
-        return Effects(self.effects, self.params, tuple(gates[i] for i in range(len(self.effects))))
+        return Effects(self.effects, self.params, tuple(gates[i] for i in range(len(self.effects))), self.time)
+
+    def at_time(self, t: Array | float) -> "Effects":
+        """The same effects at t s after the drop onset (what clocked effects read)."""
+        return Effects(self.effects, self.params, self.gates, t)
+
+    @property
+    def clocked(self) -> bool:
+        """Whether a clocked effect is among them (static: without, the time is never read)."""
+        return any(e.clocked for e in self.effects)
 
     def acts_on(self, kind: str) -> bool:
         """Whether an effect of `kind` is among them (static: decides what is traced)."""
@@ -164,7 +195,7 @@ class Effects:
         total = jnp.zeros(3, dtype=xi.dtype)
         for e, p, gate in zip(self.effects, self.params, self.gates):
             if e.kind == kind and contact in (None, e.contact):
-                total = total + gate * jnp.asarray(e.function(xi, p, rig), dtype=xi.dtype)
+                total = total + gate * jnp.asarray(e(xi, p, rig, self.time), dtype=xi.dtype)
         return total
 
     def force(self, xi: Array, rig, contact: bool | None = None) -> Array:
@@ -186,7 +217,7 @@ class Effects:
         omega, angle = jnp.asarray(rig.speed, xi.dtype), xi[THETA]
         for e, p, gate in zip(self.effects, self.params, self.gates):
             if e.kind == SPEED:
-                moved = jnp.asarray(e.function(xi, p, rig), dtype=xi.dtype)
+                moved = jnp.asarray(e(xi, p, rig, self.time), dtype=xi.dtype)
                 omega = omega + gate * (moved[0] - rig.speed)
                 angle = angle + gate * (moved[1] - xi[THETA])
         return omega, angle
@@ -262,6 +293,21 @@ def _brake_decay(xi, p, rig):
     t = xi[THETA] / rig.speed
     w = rig.speed * jnp.maximum(1.0 - p["rate"] * t, 0.0)
     return jnp.stack([w, xi[THETA] - 0.5 * p["rate"] * rig.speed * t * t])
+
+
+def _amb_release(xi, p, rig, t):
+    """The AMB's force as it lets go after the drop: its PD law about the bearing's centre (the rig's
+    amb_stiffness, N/m, and amb_damping, N s/m), its cancelling of the unbalance force (the rig's
+    amb_unbalance_compensation of m e omega^2 along theta) and its support of the weight (m g), all
+    times share exp(-t / decay_time), t the time since the drop onset (s)."""
+    gain = p["share"] * jnp.exp(-t / p["decay_time"])
+    k, c = rig.amb_stiffness, rig.amb_damping
+    compensation = rig.amb_unbalance_compensation * rig.mass * rig.eccentricity * rig.speed**2
+    return gain * jnp.stack([
+        -k * xi[X] - c * xi[XDOT] - compensation * jnp.cos(xi[THETA]),
+        -k * xi[Y] - c * xi[YDOT] - compensation * jnp.sin(xi[THETA]),
+        -k * xi[Z] - c * xi[ZDOT] + rig.mass * rig.gravity,
+    ])
 
 
 def _sensor_error(axis: int, parameter: str, change: Callable[[Array, Array], Array]) -> EffectFunction:
@@ -349,6 +395,26 @@ LIBRARY: dict[str, Effect] = {
 }
 
 
+#: Terms a user switches on from what they know of the rig (`effects.active`), which the workbench does not
+#: search for: the AMB letting go after the drop (its PD law the rig's `amb_*`).
+RIG_TERMS: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect(
+            "amb_release",
+            _amb_release,
+            {
+                "share": (1.0, "1", "share of the AMB's force still acting at the drop onset"),
+                "decay_time": (1.0e-3, "s", "time constant of the AMB's force after the drop"),
+            },
+            _amb_release.__doc__,
+            bounds={"share": (0.0, 2.0), "decay_time": (1.0e-6, 1.0)},
+            clocked=True,
+        ),
+    )
+}
+
+
 def resolve(spec: str, name: str | None = None, when: str = "") -> Effect:
     """A library effect by name, a user effect by dotted path "module:attr", or an entry point
     of group `touchdown_ros.effects`; `name` renames it (the key of its parameters), `when`
@@ -358,8 +424,8 @@ def resolve(spec: str, name: str | None = None, when: str = "") -> Effect:
 
 
 def _lookup(spec: str) -> Effect:
-    if spec in LIBRARY:
-        return LIBRARY[spec]
+    if spec in LIBRARY or spec in RIG_TERMS:
+        return LIBRARY.get(spec) or RIG_TERMS[spec]
     if ":" in spec:
         module, _, attr = spec.partition(":")
         try:
@@ -377,20 +443,23 @@ def _lookup(spec: str) -> Effect:
             return Effect(
                 attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
                 bounds=dict(getattr(obj, "bounds", {})), contact=bool(getattr(obj, "contact", False)),
+                clocked=bool(getattr(obj, "clocked", False)),
             )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name == spec:
             return _lookup(ep.value)
     raise ValueError(
-        f"unknown effect {spec!r}: use one of {', '.join(sorted(LIBRARY))}, 'module:function' "
+        f"unknown effect {spec!r}: use one of {', '.join(sorted({**LIBRARY, **RIG_TERMS}))}, 'module:function' "
         f"or an entry point of group {ENTRY_POINT_GROUP}"
     )
 
 
-def regressors(effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None) -> Array:
-    """d function / d parameters at xi: (3, n_params), N (force) or m (measurement) per parameter unit;
-    (2, n_params) for a speed effect (rad/s and rad per parameter unit)."""
+def regressors(
+    effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None, t: Array | float = 0.0
+) -> Array:
+    """d function / d parameters at xi (and t s after the onset): (3, n_params), N (force) or m (measurement)
+    per parameter unit; (2, n_params) for a speed effect (rad/s and rad per parameter unit)."""
     p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}
-    jac = jax.jacfwd(lambda p: effect_.function(xi, p, rig))(p0)
+    jac = jax.jacfwd(lambda p: effect_(xi, p, rig, t))(p0)
     return jnp.stack([jac[k] for k in p0], axis=-1)

@@ -13,17 +13,21 @@ are symmetrised after each update.
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import Array
 
-from touchdown_ros.core.dynamics import measurement, measures, step_with_jacobian, step_with_jacobian_and_rate
+from touchdown_ros.core.dynamics import (
+    at_time, measurement, measures, step_with_jacobian, step_with_jacobian_and_rate,
+)
 from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
 
-#: xi -> (f(xi), Phi): the next state's mean and df/dxi (eq. 15, 16).
-Transition = Callable[[Array], tuple[Array, Array]]
+#: xi -> (f(xi), Phi): the next state's mean and df/dxi (eq. 15, 16); (xi, t) -> ... for a timed one, t the
+#: sample's time (s) after the drop onset (`extended_kalman_filter`'s `times`).
+Transition = Callable[..., tuple[Array, Array]]
 #: xi -> (h(xi), H): the expected measurement (m) and dh/dxi (eq. 15f).
 Measurement = Callable[[Array], tuple[Array, Array]]
 
@@ -117,20 +121,24 @@ def extended_kalman_filter(
     initial: Belief,
     etas: Array,
     checkpoint: bool = False,
+    times: Array | None = None,
 ) -> StepOutput:
     """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N.
 
     checkpoint: differentiating through the filter recomputes each step in the backward
     pass instead of storing its intermediates (`jax.checkpoint`); the same numbers, and
     here about half the time of the gradient, which is bound by memory traffic.
+    times: (N,) s, each sample's time, given to the transition as (xi, t) (a model with clocked effects).
     """
 
-    def body(prior: Belief, eta: Array) -> tuple[Belief, StepOutput]:
-        return filter_step(transition, measure, Q, R, prior, eta)
+    def body(prior: Belief, inputs: tuple[Array, Array | None]) -> tuple[Belief, StepOutput]:
+        eta, t = inputs
+        step = transition if t is None else functools.partial(transition, t=t)
+        return filter_step(step, measure, Q, R, prior, eta)
 
     if checkpoint:
         body = jax.checkpoint(body)
-    _, outputs = jax.lax.scan(body, initial, etas)
+    _, outputs = jax.lax.scan(body, initial, (etas, times))
     return outputs
 
 
@@ -156,8 +164,15 @@ def rts_smoother(outputs: StepOutput) -> Belief:
 # ---------------------------------------------------------------- the touchdown model's filter
 
 def model_transition(model: Model, h: float) -> Transition:
-    """The model's RK4 step f (eq. 15) of length h (s) with Phi by the chain rule through its stages (eq. 16)."""
-    return lambda xi: step_with_jacobian(model, xi, h)
+    """The model's RK4 step f (eq. 15) of length h (s) with Phi by the chain rule through its stages (eq. 16),
+    (xi, t) -> (f, Phi) from t s after the drop onset (0 if not given; only clocked effects read it)."""
+    return lambda xi, t=0.0: step_with_jacobian(at_time(model, t), xi, h)
+
+
+def sample_times(model: Model, h: float, samples: int, start: Array | float = 0.0) -> Array | None:
+    """(samples,) s: each sample's time after the drop onset, the first's `start`, where the model has clocked
+    effects; None (no time traced) where it has none."""
+    return start + h * jnp.arange(samples) if model.effects and model.effects.clocked else None
 
 
 def model_measurement(model: Model) -> Measurement:
@@ -188,10 +203,18 @@ def ekf_step(model: Model, noise: FilterNoise, h: float, prior: Belief, eta: Arr
 
 
 def ekf(
-    model: Model, noise: FilterNoise, h: float, initial: Belief, etas: Array, checkpoint: bool = False
+    model: Model,
+    noise: FilterNoise,
+    h: float,
+    initial: Belief,
+    etas: Array,
+    checkpoint: bool = False,
+    start_time: Array | float = 0.0,
 ) -> StepOutput:
-    """`extended_kalman_filter` with the model's f and h and the noise's Q and R."""
+    """`extended_kalman_filter` with the model's f and h and the noise's Q and R; the first sample
+    `start_time` s after the drop onset (what clocked effects read)."""
     Q, R = jnp.diag(noise.process), jnp.diag(noise.measurement)
     return extended_kalman_filter(
-        model_transition(model, h), model_measurement(model), Q, R, initial, etas, checkpoint
+        model_transition(model, h), model_measurement(model), Q, R, initial, etas, checkpoint,
+        sample_times(model, h, etas.shape[0], start_time),
     )

@@ -8,7 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces, contact_forces_and_jacobian, measurement, phi
+from touchdown_ros.core.dynamics import (
+    at_time, contact_force_xyz, contact_forces, contact_forces_and_jacobian, measurement, phi,
+)
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
@@ -215,19 +217,25 @@ def force_covariance(
     return covariance if law_part is None else covariance + law_part
 
 
-def signals(model: Model, states: Belief, model_variance: Array | None = None) -> SignalSet:
+def signals(
+    model: Model, states: Belief, model_variance: Array | None = None, times: Array | None = None
+) -> SignalSet:
     """Accelerations (phi at the state) and contact forces, each with its covariance linearised
     about the state (J P J^T, J by automatic differentiation); the force's with `model_variance`
-    (`force_model_variance`) added in contact."""
+    (`force_model_variance`) added in contact. `times` (N,) s: each state's time after the drop onset
+    (what clocked effects read; 0 if not given)."""
 
-    def one(mean: Array, cov: Array):
-        acceleration = phi(model, mean)[VELOCITY]
-        J = jax.jacfwd(lambda s: phi(model, s)[VELOCITY])(mean)
-        forces, J_force = contact_forces_and_jacobian(model, mean)
-        law_part = law_force_covariance(model, mean)
+    def one(mean: Array, cov: Array, t: Array):
+        timed = at_time(model, t)
+        acceleration = phi(timed, mean)[VELOCITY]
+        J = jax.jacfwd(lambda s: phi(timed, s)[VELOCITY])(mean)
+        forces, J_force = contact_forces_and_jacobian(timed, mean)
+        law_part = law_force_covariance(timed, mean)
         return acceleration, J @ cov @ J.T, forces, force_covariance(forces, J_force, cov, model_variance, law_part)
 
-    acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov)
+    if times is None:
+        times = jnp.zeros(states.mean.shape[0], states.mean.dtype)
+    acceleration, acceleration_cov, forces, force_cov = jax.vmap(one)(states.mean, states.cov, times)
     return SignalSet(
         state=states.mean,
         state_cov=states.cov,
@@ -271,23 +279,26 @@ def make_estimator(
     for many sets).
     """
 
-    def run(model: Model, initial: Belief, etas: Array):
-        outputs: StepOutput = ekf(model, noise, sample_period, initial, etas)
+    def run(model: Model, initial: Belief, etas: Array, start_time: Array):
+        outputs: StepOutput = ekf(model, noise, sample_period, initial, etas, start_time=start_time)
         smoothed = rts_smoother(outputs)
         nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
         variance = force_model_variance(model, noise, sample_period) if model_variance is None else model_variance
+        times = start_time + sample_period * jnp.arange(etas.shape[0])
         return (
-            signals(model, outputs.filtered, variance),
-            signals(model, smoothed, variance),
+            signals(model, outputs.filtered, variance, times),
+            signals(model, smoothed, variance, times),
             jax.vmap(lambda xi: measurement(model, xi))(outputs.prior.mean),
             outputs.innovation,
             outputs.innovation_cov,
             nis,
         )
 
-    run_folded = jax.jit(lambda initial, etas: run(model, initial, etas))
+    run_folded = jax.jit(lambda initial, etas, start_time: run(model, initial, etas, start_time))
     run_with_coeffs = jax.jit(
-        lambda coeffs, effects, initial, etas: run(model._replace(coeffs=coeffs, effects=effects), initial, etas)
+        lambda coeffs, effects, initial, etas, start_time: run(
+            model._replace(coeffs=coeffs, effects=effects), initial, etas, start_time
+        )
     )
 
     def estimate(
@@ -297,9 +308,11 @@ def make_estimator(
         missing: int = 0,
         coeffs: Coefficients | None = None,
         effects: Effects | None = None,
+        start_time: float = 0.0,
     ) -> Estimate:
         """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on,
-        with the compiled model or with other coefficients / effects of the same rig."""
+        with the compiled model or with other coefficients / effects of the same rig; the row at onset_index
+        `start_time` s after the drop onset (a later segment's; what clocked effects read)."""
         stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
         initial = initial_belief(etas, np.asarray(noise.initial))
         n = len(etas)
@@ -308,11 +321,11 @@ def make_estimator(
         padded = np.full((-(-n // PAD_BUCKET) * PAD_BUCKET, 3), np.nan)
         padded[:n] = etas
         if coeffs is None and effects is None:
-            outputs = run_folded(initial, jnp.asarray(padded))
+            outputs = run_folded(initial, jnp.asarray(padded), start_time)
         else:
             coeffs = model.coeffs if coeffs is None else coeffs
             effects = model.effects if effects is None else effects
-            outputs = run_with_coeffs(coeffs, effects, initial, jnp.asarray(padded))
+            outputs = run_with_coeffs(coeffs, effects, initial, jnp.asarray(padded), start_time)
         trimmed = jax.tree.map(lambda a: a[:n], jax.device_get(outputs))
         filtered, smoothed, predicted, innovation, innovation_cov, nis = trimmed
         return Estimate(

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_forces, rk4_step
+from touchdown_ros.core.dynamics import at_time, contact_forces, rk4_step
 from touchdown_ros.core.ekf import Belief, Measurement, ekf, inverse_and_det_3x3, model_measurement, rts_smoother
 from touchdown_ros.core.training import Batch
 from touchdown_ros.core.types import OUTPUT_SIZE, VELOCITY, FilterNoise, Model
@@ -81,7 +81,8 @@ def missing_force_squares(model: Model, noise: FilterNoise, h: float, batch: Bat
 
     def squares(gated: Model, belief: Belief, etas: Array, valid: Array) -> tuple[Array, Array]:
         smoothed = belief.mean
-        predicted = jax.vmap(lambda xi: rk4_step(gated, xi, h))(smoothed[:-1])
+        times = h * jnp.arange(smoothed.shape[0] - 1)
+        predicted = jax.vmap(lambda xi, t: rk4_step(at_time(gated, t), xi, h))(smoothed[:-1], times)
         force = gated.rig.mass * (smoothed[1:] - predicted)[:, VELOCITY] / h
         forces = jax.vmap(lambda xi: contact_forces(gated, xi))(smoothed[:-1])
         counted = valid[:-1] & valid[1:] & (forces.radial_contact | forces.axial_contact)

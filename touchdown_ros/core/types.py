@@ -35,6 +35,10 @@ class Rig(NamedTuple):
     journal_radius: float = 0.1  # R, m: the rotor's journal in the bore (friction torque on a spinning ring)
     face_radius: float = 0.1  # R_a, m: mean radius of the face contact
     ring_inertia: float = 3.0e-3  # J, kg m^2: the inner ring's polar moment with what spins with it
+    # the AMB controller as it was at the drop (what the `amb_release` effect lets go of; none by default)
+    amb_stiffness: float = 0.0  # N/m, its PD law's proportional gain about the bearing's centre
+    amb_damping: float = 0.0  # N s/m, its PD law's derivative gain
+    amb_unbalance_compensation: float = 0.0  # 1, share of the unbalance force m e omega^2 it cancels
 
 
 class Nominal(NamedTuple):

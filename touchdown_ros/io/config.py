@@ -372,6 +372,10 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         journal_radius=read.number("rig.journal_radius", Rig._field_defaults["journal_radius"], positive=True),
         face_radius=read.number("rig.face_radius", Rig._field_defaults["face_radius"], positive=True),
         ring_inertia=read.number("rig.ring_inertia", Rig._field_defaults["ring_inertia"], positive=True),
+        **{
+            name: read.number(f"rig.{name}", 0.0, non_negative=True)
+            for name in ("amb_stiffness", "amb_damping", "amb_unbalance_compensation")
+        },
     )
     nominal = Nominal(*(read.number(f"contact.{name}", non_negative=True) for name in Nominal._fields))
     law = _contact_law(read)

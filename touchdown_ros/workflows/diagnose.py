@@ -108,7 +108,9 @@ class _Compiled:
             lambda m, init, etas: disturbance_smoother(m, process, measurement, init, etas, h, force_walk)
         )
         self.coefficient_regressors = jax.jit(coefficient_regressors)
-        self.library_regressors = jax.jit(lambda m, s, at: library_regressors(fx.LIBRARY, s, m, at))
+        self.library_regressors = jax.jit(
+            lambda m, s, at: library_regressors(fx.LIBRARY, s, m, at, h * jnp.arange(s.shape[0]))
+        )
 
 
 @functools.lru_cache(maxsize=4)

@@ -142,6 +142,7 @@ def estimate_record(
     gap, clock jump or run of unusable samples by a filter started afresh from its own data (as the
     live node restarts it). Returns the joined estimate and the rows where the filter restarted."""
     segment_index, onset = find_onset(record, config, Path(source))
+    onset_stamp_ns = int(record.segments[segment_index].stamps_ns[onset])
     parts = []
     for k in range(segment_index, len(record.segments)):
         segment = record.segments[k]
@@ -149,7 +150,11 @@ def estimate_record(
         if not np.isfinite(segment.etas[start:]).all(axis=1).any():
             continue  # nothing usable to start a filter from
         missing = int(np.count_nonzero(~np.isfinite(segment.etas[start:]).all(axis=1)))
-        parts.append(estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects))
+        start_time = (int(segment.stamps_ns[start]) - onset_stamp_ns) * 1e-9  # s after the drop onset
+        parts.append(
+            estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects,
+                      start_time=start_time)
+        )
     restarts = tuple(int(r) for r in np.cumsum([len(p.stamps_ns) for p in parts])[:-1])
     return concatenate_estimates(parts), restarts
 

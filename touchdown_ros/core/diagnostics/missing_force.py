@@ -12,15 +12,10 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES
-from touchdown_ros.core.dynamics import contact_forces, phi, ring_speed_after, rk4, spin_acceleration, unbalance_change
-from touchdown_ros.core.ekf import (
-    Belief,
-    Transition,
-    extended_kalman_filter,
-    model_measurement,
-    rts_smoother,
-    with_jacobian,
+from touchdown_ros.core.dynamics import (
+    at_time, contact_forces, later, phi, ring_speed_after, rk4, spin_acceleration, unbalance_change,
 )
+from touchdown_ros.core.ekf import Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, sample_times
 from touchdown_ros.core.effects import SPEED
 from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Model
 
@@ -37,23 +32,27 @@ class MissingForce(NamedTuple):
 
 def augmented_transition(model: Model, h: float) -> Transition:
     """RK4 step (h, s) of the state s = (xi, d) augmented with a force d (3,), N, on the rotor that
-    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd). A
-    spinning ring's speed is updated first and carried along with the rotor's, as in `rk4_step`."""
+    stays constant over the step: d xi / dt = phi(xi) + (0, d / m), and its Jacobian (jacfwd), from
+    t s after the drop onset ((s, t) -> ...; 0 if not given). A spinning ring's speed is updated first and
+    carried along with the rotor's, as in `rk4_step`."""
     mass, size = model.rig.mass, model.law.state_size
     spinning = model.law.spins_ring
 
-    def phi_aug(s: Array) -> Array:
-        rate = phi(model, s[:size]).at[VELOCITY].add(s[size:] / mass)
-        if spinning:
-            rate = rate.at[OMEGA_RING].set(spin_acceleration(model, s[:size]))
-        return jnp.concatenate([rate, jnp.zeros(3, s.dtype)])
+    def step(s: Array, t: Array | float) -> Array:
+        start = at_time(model, t)
 
-    def step(s: Array) -> Array:
+        def phi_aug(state: Array, stage: float) -> Array:
+            staged = later(start, stage)
+            rate = phi(staged, state[:size]).at[VELOCITY].add(state[size:] / mass)
+            if spinning:
+                rate = rate.at[OMEGA_RING].set(spin_acceleration(staged, state[:size]))
+            return jnp.concatenate([rate, jnp.zeros(3, state.dtype)])
+
         if spinning:
-            s = s.at[OMEGA_RING].set(ring_speed_after(model, s[:size], h))
+            s = s.at[OMEGA_RING].set(ring_speed_after(start, s[:size], h))
         return rk4(phi_aug, s, h)
 
-    return with_jacobian(step)
+    return lambda s, t=0.0: (step(s, t), jax.jacfwd(step)(s, t))
 
 
 def model_force(model: Model, xi: Array) -> Array:
@@ -86,11 +85,12 @@ def disturbance_smoother(
     mean0 = jnp.concatenate([initial.mean, jnp.zeros(3)])
     cov0 = jax.scipy.linalg.block_diag(initial.cov, force_initial**2 * jnp.eye(3))
     transition, measure = augmented_transition(model, h), model_measurement(model)
-    outputs = extended_kalman_filter(transition, measure, Q, R, Belief(mean0, cov0), jnp.asarray(etas))
+    times = sample_times(model, h, len(etas))
+    outputs = extended_kalman_filter(transition, measure, Q, R, Belief(mean0, cov0), jnp.asarray(etas), times=times)
     smoothed = rts_smoother(outputs)
     size = model.law.state_size
     state = smoothed.mean[:, :size]
-    forces = jax.vmap(lambda s: model_force(model, s))(state)
+    forces = jax.vmap(lambda s, t: model_force(at_time(model, t), s))(state, h * jnp.arange(len(state)))
     return MissingForce(
         force=smoothed.mean[:, size:],
         force_std=jnp.sqrt(jnp.diagonal(smoothed.cov, axis1=1, axis2=2)[:, size:]),

@@ -12,7 +12,7 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.diagnostics.breakdown import PHASES, rms_by_label
-from touchdown_ros.core.dynamics import rk4_step
+from touchdown_ros.core.dynamics import at_time, rk4_step
 from touchdown_ros.core.metrics import rmse
 from touchdown_ros.core.types import Model
 
@@ -34,13 +34,15 @@ def fit_percent(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
 
 def k_step_predictions(model: Model, states: Array, h: float, k: int) -> Array:
     """(N, n): row i is the filtered state of sample i - k propagated k RK4 steps with the
-    model alone (no measurement update); the first k rows are NaN."""
+    model alone (no measurement update); the first k rows are NaN. Row j of `states` is j h s after the
+    drop onset (what clocked effects read)."""
     states = jnp.asarray(states)
 
-    def propagate(xi: Array) -> Array:
-        return jax.lax.fori_loop(0, k, lambda _, s: rk4_step(model, s, h), xi)
+    def propagate(xi: Array, start: Array) -> Array:
+        return jax.lax.fori_loop(0, k, lambda j, s: rk4_step(at_time(model, start + j * h), s, h), xi)
 
-    ahead = jax.vmap(propagate)(states[: states.shape[0] - k]) if k > 0 else states
+    starts = h * jnp.arange(states.shape[0] - k)
+    ahead = jax.vmap(propagate)(states[: states.shape[0] - k], starts) if k > 0 else states
     return jnp.concatenate([jnp.full((k, states.shape[1]), jnp.nan, states.dtype), ahead])
 
 

@@ -12,7 +12,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.diagnostics.missing_force import model_force
-from touchdown_ros.core.dynamics import phi, rotor_speed
+from touchdown_ros.core.dynamics import at_time, phi, rotor_speed
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, Model
 
@@ -41,7 +41,9 @@ def motion(model: Model, xi: Array) -> Motion:
     return Motion(phi(model, xi), jax.jacfwd(lambda s: phi(model, s))(xi))
 
 
-def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion | None) -> Array:
+def force_equivalent(
+    effect: Effect, xi: Array, params, model: Model, at: Motion | None, t: Array | float = 0.0
+) -> Array:
     """(3,) N: a measurement effect as the force it stands for at xi; a force effect's force as it is;
     a speed effect's as the change of the model's force on the rotor it makes, m (phi with it - phi
     without it) in the accelerations (the unbalance and, against a co-rotating ring, the friction). A
@@ -57,8 +59,8 @@ def force_equivalent(effect: Effect, xi: Array, params, model: Model, at: Motion
     zero in free flight, the contact stiffness times it in contact.
     """
     rig, mass = model.rig, model.rig.mass
-    if effect.kind == FORCE:
-        return jnp.asarray(effect.function(xi, params, rig), xi.dtype)
+    if effect.kind == FORCE:  # t: s after the drop onset, what a clocked force reads
+        return jnp.asarray(effect(xi, params, rig, t), xi.dtype)
     if effect.kind == SPEED:
         def acceleration(effects: Effects) -> Array:
             moved = model._replace(effects=effects)
@@ -93,27 +95,33 @@ def effect_regressors(effect: Effect, states: Array, model: Model, values: dict 
 
 
 def library_regressors(
-    effects: Mapping[str, Effect], states: Array, model: Model, values: Mapping[str, dict] | None = None
+    effects: Mapping[str, Effect],
+    states: Array,
+    model: Model,
+    values: Mapping[str, dict] | None = None,
+    times: Array | None = None,
 ) -> dict[str, tuple[Array, Array]]:
     """`effect_regressors` of several effects at once, name -> (J (N, 3, p), f0 (N, 3)): the model's
-    rate and its Jacobian along the states (`motion`) are computed once for all measurement effects."""
+    rate and its Jacobian along the states (`motion`) are computed once for all measurement effects.
+    `times` (N,) s: each state's time after the drop onset, what clocked effects read (0 if not given)."""
     states = jnp.asarray(states)
+    times = jnp.zeros(states.shape[0], states.dtype) if times is None else jnp.asarray(times, states.dtype)
     measuring = any(e.kind == MEASUREMENT for e in effects.values())
-    motions = jax.vmap(lambda xi: motion(model, xi))(states) if measuring else None
+    motions = jax.vmap(lambda xi, t: motion(at_time(model, t), xi))(states, times) if measuring else None
     out = {}
     for name, effect in effects.items():
         p0 = (values or {}).get(name) or effect.defaults()
         params = {k: jnp.asarray(v, states.dtype) for k, v in p0.items()}
         names = list(params)
 
-        def force(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
-            return force_equivalent(e, xi, p, model, at)
+        def force(xi: Array, at: Motion | None, t: Array, p=params, e=effect) -> Array:
+            return force_equivalent(e, xi, p, model, at, t)
 
-        def jacobian(xi: Array, at: Motion | None, p=params, e=effect) -> Array:
-            J = jax.jacfwd(lambda q: force_equivalent(e, xi, q, model, at))(p)
+        def jacobian(xi: Array, at: Motion | None, t: Array, p=params, e=effect) -> Array:
+            J = jax.jacfwd(lambda q: force_equivalent(e, xi, q, model, at, t))(p)
             return jnp.stack([J[k] for k in names], axis=-1)
 
-        out[name] = (jax.vmap(jacobian)(states, motions), jax.vmap(force)(states, motions))
+        out[name] = (jax.vmap(jacobian)(states, motions, times), jax.vmap(force)(states, motions, times))
     return out
 
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from touchdown_ros.core.dynamics import contact_force_xyz, contact_forces_and_jacobian
+from touchdown_ros.core.dynamics import at_time, contact_force_xyz, contact_forces_and_jacobian
 from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
 from touchdown_ros.core.estimate import force_covariance, force_model_variance, law_force_covariance
 from touchdown_ros.core.streaming.outputs import PACKED_WIDTH
@@ -22,13 +22,14 @@ from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, FilterNoi
 
 ChunkFunction = Callable[[np.ndarray], Array]
 
-# A chunk buffer's last row holds the prior (mean, covariance row-major) and the count of real rows; the
-# largest state is 8 (a spinning ring's).
-assert PACKED_WIDTH > 8 + 64, "a chunk buffer's row must hold the prior and the count"
+# A chunk buffer's last row holds the prior (mean, covariance row-major), the count of real rows and the first
+# row's time after the drop onset; the largest state is 8 (a spinning ring's).
+assert PACKED_WIDTH > 8 + 64 + 1, "a chunk buffer's row must hold the prior, the count and the time"
 
 
 def prior_columns(size: int) -> tuple[slice, int]:
-    """Columns of a chunk buffer's last row that hold the prior of a state of `size` and the count."""
+    """Columns of a chunk buffer's last row that hold the prior of a state of `size` and the count (the first
+    row's time after the drop onset, s, in the column after it)."""
     return slice(0, size + size * size), size + size * size
 
 
@@ -38,7 +39,8 @@ def make_chunk_filter(
     """Jitted `buffer (C + 1, width) -> buffer`: the EKF over C rows, one compiled loop, one array each way.
 
     In: rows 0..C-1 hold the measurements eta (m) in columns 0-2 (NaN: predict only);
-    row C holds the prior and, in the column after it (`prior_columns`), the number of real rows. Out: row k
+    row C holds the prior and, in the columns after it (`prior_columns`), the number of real rows and row 0's
+    time after the drop onset (s; row k's is k sample periods later, what clocked effects read). Out: row k
     holds the packed results of row k (`outputs.PACKED_LAYOUT`), row C the prior after the last real
     row. Each row is the EKF step (`update`, then `predict_with_rate`) and the filtered
     signals of `estimate.signals` (acceleration and its covariance from the first RK4
@@ -64,11 +66,12 @@ def make_chunk_filter(
     if model_variance is None:
         model_variance = force_model_variance(model, noise, sample_period)
 
-    def row(prior: Belief, eta: Array) -> tuple[Belief, Array]:
+    def row(prior: Belief, eta: Array, t: Array) -> tuple[Belief, Array]:
+        timed = at_time(model, t)
         filtered, innovation, S, used = update(prior, eta, R, measure)
-        next_prior, _, rate, rate_jacobian = predict_with_rate(model, filtered, Q, sample_period)
+        next_prior, _, rate, rate_jacobian = predict_with_rate(timed, filtered, Q, sample_period)
         J = rate_jacobian[VELOCITY]
-        forces, J_force = contact_forces_and_jacobian(model, filtered.mean)
+        forces, J_force = contact_forces_and_jacobian(timed, filtered.mean)
         nis = innovation @ (_inverse_3x3(S) @ innovation)  # NaN where the sample was not used
         packed = jnp.concatenate(
             [
@@ -80,7 +83,7 @@ def make_chunk_filter(
                 (J @ filtered.cov @ J.T).reshape(9),
                 contact_force_xyz(forces),
                 force_covariance(
-                    forces, J_force, filtered.cov, model_variance, law_force_covariance(model, filtered.mean)
+                    forces, J_force, filtered.cov, model_variance, law_force_covariance(timed, filtered.mean)
                 ).reshape(9),
                 jnp.stack([forces.F_n, forces.F_t, forces.F_z]),
                 jnp.stack([forces.radial_contact, forces.axial_contact]).astype(eta.dtype),
@@ -94,19 +97,19 @@ def make_chunk_filter(
 
     def run(buffer: Array) -> Array:
         last = buffer.shape[0] - 1
-        count = buffer[last, count_column]
+        count, start = buffer[last, count_column], buffer[last, count_column + 1]
 
-        def real(carried: Array, eta: Array) -> tuple[Array, Array]:
-            next_prior, packed = row(Belief(carried[:size], carried[size:].reshape(size, size)), eta)
+        def real(carried: Array, eta: Array, t: Array) -> tuple[Array, Array]:
+            next_prior, packed = row(Belief(carried[:size], carried[size:].reshape(size, size)), eta, t)
             return jnp.concatenate([next_prior.mean, next_prior.cov.reshape(size * size)]), packed
 
-        def padding(carried: Array, eta: Array) -> tuple[Array, Array]:
+        def padding(carried: Array, eta: Array, t: Array) -> tuple[Array, Array]:
             return carried, jnp.full(PACKED_WIDTH, jnp.nan, eta.dtype)
 
         def body(carried: Array, inputs: tuple[Array, Array]) -> tuple[Array, Array]:
             eta, k = inputs
             # a branch, not a select: padding rows cost nothing (a block of 19 in a chunk of 32: 360 -> 258 us)
-            return jax.lax.cond(k < count, real, padding, carried, eta)
+            return jax.lax.cond(k < count, real, padding, carried, eta, start + k * sample_period)
 
         # scan's outputs are written in place; updating the buffer row by row in a loop made XLA copy it per row
         carried, rows = jax.lax.scan(body, buffer[last, prior_slice], (buffer[:last, :3], jnp.arange(last)))
@@ -120,11 +123,13 @@ def flat_belief(belief: Belief) -> np.ndarray:
     return np.concatenate([np.asarray(belief.mean), np.asarray(belief.cov).reshape(-1)])
 
 
-def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray) -> np.ndarray:
-    """Input of a chunk filter of `size` rows: etas (n <= size, 3) m, NaN padding, the prior (`flat_belief`) and n."""
+def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray, start_time: float = 0.0) -> np.ndarray:
+    """Input of a chunk filter of `size` rows: etas (n <= size, 3) m, NaN padding, the prior (`flat_belief`), n
+    and the first row's time after the drop onset (s)."""
     buffer = np.zeros((size + 1, PACKED_WIDTH))
     buffer[: len(etas), :3] = etas
     buffer[len(etas) : size, :3] = np.nan
     buffer[size, : len(prior)] = prior
     buffer[size, len(prior)] = len(etas)
+    buffer[size, len(prior) + 1] = start_time
     return buffer

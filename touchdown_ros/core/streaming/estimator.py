@@ -312,7 +312,8 @@ class StreamingEstimator:
         while done < len(etas):
             count = min(len(etas) - done, largest)
             size = next(c for c in self._sizes if c >= count)
-            result = np.asarray(self._chunk(chunk_buffer(etas[done : done + count], size, belief)))
+            start_time = (int(stamps[done]) - self._touchdown.onset_stamp_ns) * 1e-9  # s after the drop onset
+            result = np.asarray(self._chunk(chunk_buffer(etas[done : done + count], size, belief, start_time)))
             packed_parts.append(result[:count])
             belief = result[size, : len(belief)]
             done += count
