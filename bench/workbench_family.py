@@ -16,6 +16,8 @@ as large (a sensor gain's deviation from 1): how large an effect must be for the
 -p contact.friction:=co_rotating_ring). --simulator NAME:=VALUE changes the simulated truth of every chosen case
 (a key under the rig YAML's `simulator.`, e.g. --simulator ceramic.friction_static:=0.18: no Stribeck drop on the
 family's ceramic balls), to see what another physical effect does to a case; the case's name says so.
+Effects given with -p effects.active:=[...] (the rig's own terms, e.g. amb_release with the AMB's constants as
+-p rig.amb_stiffness:=...) stay switched on beside those the rounds add.
 
 Writes DIR/workbench.json and DIR/workbench.md (the table of docs/workbench.md) and prints it.
 Then stage 1 again with the true effect switched on beside the effects the rounds added
@@ -187,6 +189,16 @@ def _second(verdict: dict) -> str | None:
     return next((n for n in names if n != first), None)
 
 
+def given_effects(params: list[str]) -> list[str]:
+    """The effects a `-p effects.active:=[a,b]` among the overrides switches on (the last such override)."""
+    given: list[str] = []
+    for p in params:
+        name, _, value = p.partition(":=")
+        if name.strip() == "effects.active":
+            given = [e.strip().strip("'\"") for e in value.strip().strip("[]").split(",") if e.strip()]
+    return given
+
+
 def run_case(
     case: Case, out: Path, fit: int | None = None, params: list[str] = (), from_guess: bool = False, drops: int = DROPS
 ) -> dict:
@@ -197,9 +209,11 @@ def run_case(
     shutil.rmtree(out, ignore_errors=True)
     bags, rig, truths = simulate(case, out, drops)
     log = io.StringIO()
+    given = given_effects(params)  # the rig's own terms (-p effects.active:=[...]), kept beside those added
     overrides = [a for p in params for a in ("-p", p)]
 
     def train(path: Path, effects: list[str], start: Path | None = None) -> Path:
+        effects = [*given, *effects]
         active = ["-p", f"effects.active:=[{','.join(effects)}]"] if effects else []
         started = ["--start", str(start)] if start is not None and not from_guess else []
         _run(["train", *map(str, bags), "-o", str(path), "--steps", "0", "--config", str(rig), *overrides, *active,
