@@ -15,7 +15,9 @@ from touchdown_ros.core.diagnostics.breakdown import PHASES
 from touchdown_ros.core.dynamics import (
     at_time, contact_forces, later, phi, ring_speed_after, rk4, spin_acceleration, unbalance_change,
 )
-from touchdown_ros.core.ekf import Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, sample_times
+from touchdown_ros.core.ekf import (
+    Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, sample_times,
+)
 from touchdown_ros.core.effects import SPEED
 from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Model
 
