@@ -216,21 +216,21 @@ def contact_forces_and_jacobian(model: Model, xi: Array) -> tuple[ContactForces,
     return forces, jacobian
 
 
+def clocked(model: Model) -> bool:
+    """Whether the model has clocked effects (static: without, the time is not traced at all)."""
+    effects = getattr(model, "effects", None)
+    return bool(effects) and effects.clocked
+
+
 def at_time(model: Model, t: Array | float) -> Model:
     """The model t s after the drop onset: what its clocked effects read (`Effect.clocked`); the model
-    itself when it has none (static: then the time is not traced at all)."""
-    effects = getattr(model, "effects", None)
-    if effects and effects.clocked:
-        return model._replace(effects=effects.at_time(t))
-    return model
+    itself when it has none."""
+    return model._replace(effects=model.effects.at_time(t)) if clocked(model) else model
 
 
 def later(model: Model, dt: Array | float) -> Model:
     """`at_time` dt s after the model's own time (an RK4 stage within a step)."""
-    effects = getattr(model, "effects", None)
-    if effects and effects.clocked:
-        return model._replace(effects=effects.at_time(effects.time + dt))
-    return model
+    return at_time(model, model.effects.time + dt) if clocked(model) else model
 
 
 def rotor_speed(model: Model, xi: Array) -> tuple[Array, Array]:

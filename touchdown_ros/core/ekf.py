@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from touchdown_ros.core.dynamics import (
-    at_time, measurement, measures, step_with_jacobian, step_with_jacobian_and_rate,
+    at_time, clocked, measurement, measures, step_with_jacobian, step_with_jacobian_and_rate,
 )
 from touchdown_ros.core.types import OUTPUT_SIZE, STATE_SIZE, FilterNoise, Model
 
@@ -172,7 +172,7 @@ def model_transition(model: Model, h: float) -> Transition:
 def sample_times(model: Model, h: float, samples: int, start: Array | float = 0.0) -> Array | None:
     """(samples,) s: each sample's time after the drop onset, the first's `start`, where the model has clocked
     effects; None (no time traced) where it has none."""
-    return start + h * jnp.arange(samples) if model.effects and model.effects.clocked else None
+    return start + h * jnp.arange(samples) if clocked(model) else None
 
 
 def model_measurement(model: Model) -> Measurement:
