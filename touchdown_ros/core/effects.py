@@ -139,15 +139,19 @@ class Effects:
         self.gates = tuple(gates) if gates is not None else (1.0,) * len(self.effects)
         self.time = time
 
-    # pytree protocol: the functions are aux data (hashable by identity), the values children
+    # pytree protocol: the functions are aux data (hashable by identity), the values children; the time only
+    # where a clocked effect reads it (without, the tree is what it was before there were clocked effects)
     def tree_flatten(self):
-        return (self.params, self.gates, self.time), self.effects
+        if self.clocked:
+            return (self.params, self.gates, self.time), self.effects
+        return (self.params, self.gates), self.effects
 
     @classmethod
     def tree_unflatten(cls, aux, children):
         obj = object.__new__(cls)
         obj.effects = aux
-        obj.params, obj.gates, obj.time = tuple(children[0]), tuple(children[1]), children[2]
+        obj.params, obj.gates = tuple(children[0]), tuple(children[1])
+        obj.time = children[2] if len(children) > 2 else 0.0
         return obj
 
     def __len__(self) -> int:
