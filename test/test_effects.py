@@ -26,6 +26,14 @@ def _contact_push(xi, p, rig):
 _contact_push.parameters, _contact_push.contact = {"F": (100.0, "N", "push along x")}, True
 
 
+def _user_ramp(xi, p, rig, t):
+    """A user-written clocked force: an axial pull growing at `rate` N/s from the drop onset."""
+    return jnp.stack([0.0 * xi[2], 0.0 * xi[2], -p["rate"] * t + 0.0 * xi[2]])
+
+
+_user_ramp.parameters, _user_ramp.clocked = {"rate": (1.0e5, "N/s", "growth of the pull")}, True
+
+
 def test_default_model_has_no_effects_and_axial_load_adds_force():
     model = load_config().model()
     assert len(model.effects) == 0
@@ -286,6 +294,9 @@ def test_amb_release_decays_from_the_onset_and_each_rk4_stage_reads_its_own_time
     np.testing.assert_allclose(rk4_step(at_time(model, t0), xi, h)[6], exact, rtol=1e-6)
     np.testing.assert_allclose(step_with_jacobian(at_time(model, t0), xi, h)[0][6], exact, rtol=1e-6)
     assert "amb_release" not in fx.LIBRARY  # a term the user switches on, not a candidate of the workbench's
+    ramp = base._replace(effects=fx.Effects((fx.resolve(f"{__name__}:_user_ramp"),)))  # a clocked one by dotted path
+    np.testing.assert_allclose(phi(at_time(ramp, 2.0e-3), xi)[6] - phi(at_time(ramp, 0.0), xi)[6],
+                               -1.0e5 * 2.0e-3 / base.rig.mass)
 
 
 def test_amb_release_is_the_rigs_pd_law_and_unbalance_compensation_and_the_filter_runs_it_in_time():

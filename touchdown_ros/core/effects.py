@@ -26,14 +26,15 @@ parameters and a change of which effects are active recompiles. With no effects
 Library (`LIBRARY`): force effects axial_load, radial_load, magnetic_stiffness,
 cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupling; measurement
 effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
-gain * position + offset on that axis; the speed effect brake_decay (a braked rotor); the clocked
-force amb_release (the AMB's force decaying after the drop, its PD law the rig's `amb_*`).
+gain * position + offset on that axis; the speed effect brake_decay (a braked rotor). Beside it,
+`RIG_TERMS`, which the user switches on and the workbench does not search for: the clocked force
+amb_release (the AMB's force decaying after the drop, its PD law the rig's `amb_*`).
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
-(default, unit, description)), optionally ``bounds`` (name -> (low, high)) and, for a
-measurement effect, ``kind = "measurement"`` (``clocked = True``: it takes the time since the onset as a
-fourth argument), or is made by the `effect` decorator below.
+(default, unit, description)), optionally ``bounds`` (name -> (low, high)), for a
+measurement effect ``kind = "measurement"`` and for a clocked one ``clocked = True`` (it takes the time
+since the onset as a fourth argument), or is made by the `effect` decorator below.
 """
 from __future__ import annotations
 
@@ -428,8 +429,9 @@ def resolve(spec: str, name: str | None = None, when: str = "") -> Effect:
 
 
 def _lookup(spec: str) -> Effect:
-    if spec in LIBRARY or spec in RIG_TERMS:
-        return LIBRARY.get(spec) or RIG_TERMS[spec]
+    known = {**LIBRARY, **RIG_TERMS}
+    if spec in known:
+        return known[spec]
     if ":" in spec:
         module, _, attr = spec.partition(":")
         try:
@@ -454,7 +456,7 @@ def _lookup(spec: str) -> Effect:
         if ep.name == spec:
             return _lookup(ep.value)
     raise ValueError(
-        f"unknown effect {spec!r}: use one of {', '.join(sorted({**LIBRARY, **RIG_TERMS}))}, 'module:function' "
+        f"unknown effect {spec!r}: use one of {', '.join(sorted(known))}, 'module:function' "
         f"or an entry point of group {ENTRY_POINT_GROUP}"
     )
 
