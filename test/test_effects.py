@@ -34,6 +34,14 @@ def _user_ramp(xi, p, rig, t):
 _user_ramp.parameters, _user_ramp.clocked = {"rate": (1.0e5, "N/s", "growth of the pull")}, True
 
 
+def _user_drift(xi, p, rig, t):
+    """A user-written clocked measurement effect: the z sensor's zero drifting at `rate` m/s from the onset."""
+    return jnp.stack([0.0 * xi[2], 0.0 * xi[2], p["rate"] * t + 0.0 * xi[2]])
+
+
+_user_drift.parameters, _user_drift.kind, _user_drift.clocked = {"rate": (0.01, "m/s", "drift")}, "measurement", True
+
+
 def test_default_model_has_no_effects_and_axial_load_adds_force():
     model = load_config().model()
     assert len(model.effects) == 0
@@ -329,3 +337,21 @@ def test_amb_release_is_the_rigs_pd_law_and_unbalance_compensation_and_the_filte
     for k in range(n - 1):
         state = rk4_step(at_time(model, k * h), state, h)
         np.testing.assert_allclose(out.prior.mean[k + 1], state, rtol=1e-10, atol=1e-16)
+
+
+def test_regressors_give_clocked_effects_each_states_time():
+    """Along states timed from the onset, a clocked force is its value at each state's time, and a clocked sensor
+    drift stands for the same force as the library's z offset of the drift's size at that time."""
+    from touchdown_ros.core.diagnostics.regressors import library_regressors
+
+    model = load_config().model()
+    times = jnp.asarray([0.0, 1.0e-3, 2.0e-3])
+    states = jnp.zeros((3, model.law.state_size)).at[:, 2].set(-(model.rig.axial_clearance + 2.0e-5))  # on the face
+    ramp, drift = fx.resolve(f"{__name__}:_user_ramp"), fx.resolve(f"{__name__}:_user_drift")
+    out = library_regressors({"ramp": ramp, "drift": drift}, states, model, times=times)
+    np.testing.assert_allclose(out["ramp"][1][:, 2], -1.0e5 * np.asarray(times), atol=1e-9)
+    offset = fx.LIBRARY["sensor_offset_z"]
+    for j, t in enumerate(np.asarray(times)):
+        same = library_regressors({"offset": offset}, states[j:j + 1], model, {"offset": {"offset": 0.01 * t}})
+        np.testing.assert_allclose(out["drift"][1][j], same["offset"][1][0], rtol=1e-9, atol=1e-9)
+    assert np.abs(np.asarray(out["drift"][1][2, 2])) > 1.0  # in contact the drift moves a force

@@ -74,8 +74,9 @@ def whirl_speeds(etas: np.ndarray, h: float, window: float = WINDOW) -> OrbitSpe
 
 def _speed_of(effect: Effect, params: dict[str, jax.Array], times: np.ndarray, rig) -> jax.Array:
     """The effect's rotor speed (rad/s) at `times` (s from the drop onset), theta = the rig's speed x t."""
-    states = jnp.zeros((len(times), STATE_SIZE)).at[:, THETA].set(rig.speed * jnp.asarray(times))
-    return jax.vmap(lambda xi: effect.function(xi, params, rig)[0])(states)
+    times = jnp.asarray(times)
+    states = jnp.zeros((len(times), STATE_SIZE)).at[:, THETA].set(rig.speed * times)
+    return jax.vmap(lambda xi, t: effect(xi, params, rig, t)[0])(states, times)
 
 
 def fit_speed_effect(effect: Effect, start: dict[str, float], rig, orbits: OrbitSpeeds) -> dict[str, float] | None:

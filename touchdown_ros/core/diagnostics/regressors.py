@@ -59,7 +59,7 @@ def force_equivalent(
     zero in free flight, the contact stiffness times it in contact.
     """
     rig, mass = model.rig, model.rig.mass
-    if effect.kind == FORCE:  # t: s after the drop onset, what a clocked force reads
+    if effect.kind == FORCE:  # t: s after the drop onset, what a clocked effect reads
         return jnp.asarray(effect(xi, params, rig, t), xi.dtype)
     if effect.kind == SPEED:
         def acceleration(effects: Effects) -> Array:
@@ -69,10 +69,10 @@ def force_equivalent(
                 state = xi.at[OMEGA_RING].add(rotor_speed(moved, xi)[0] - rotor_speed(model, xi)[0])
             return phi(moved, state)[VELOCITY]
 
-        return mass * (acceleration(Effects((effect,), (params,))) - acceleration(Effects()))
+        return mass * (acceleration(Effects((effect,), (params,), time=t)) - acceleration(Effects()))
 
     def change(state: Array) -> Array:
-        return jnp.asarray(effect.function(state, params, rig), xi.dtype)
+        return jnp.asarray(effect(state, params, rig, t), xi.dtype)
 
     def change_rate(state: Array) -> Array:
         return jax.jacfwd(change)(state) @ at.rate
