@@ -196,3 +196,19 @@ def test_config_reads_the_stribeck_drop_and_refuses_to_fit_one_it_cannot():
     ):
         with pytest.raises(ConfigError, match=message):
             load_config(overrides=overrides)
+
+
+def test_a_lead_starts_the_record_in_levitation_and_needs_the_ambs_force():
+    """drop_detection.lead moves the onset back by its rows in every tool (the detector's fall rows) and starts
+    amb_release's release there; without a clocked force effect it is refused by name, as is a negative one."""
+    amb = {"effects.active": ["amb_release"], "rig.amb_stiffness": 2.0e6, "rig.amb_damping": 2.0e4}
+    plain, led = load_config(overrides=amb), load_config(overrides={**amb, "drop_detection.lead": 3.0e-3})
+    assert led.drop_detector().fall_samples == plain.drop_detector().fall_samples + 30
+    assert led.stream_settings().drop == led.drop_detector()  # the live node's onset is the offline tools'
+    assert led.effects.params[0]["release"] == 3.0e-3 and plain.effects.params[0]["release"] == 0.0
+    given = load_config(overrides={**amb, "drop_detection.lead": 3.0e-3, "effects.amb_release.release": 2.0e-3})
+    assert given.effects.params[0]["release"] == 2.0e-3
+    with pytest.raises(ConfigError, match=r"drop_detection.lead = 0.003 s .* \(effects.active: \[amb_release\]"):
+        load_config(overrides={"drop_detection.lead": 3.0e-3})
+    with pytest.raises(ConfigError, match="drop_detection.lead' must be >= 0"):
+        load_config(overrides={**amb, "drop_detection.lead": -1.0e-3})

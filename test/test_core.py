@@ -668,3 +668,4 @@ def test_drop_detection_finds_onset():
     drop = DropDetector(h, threshold=20e-6, levitated_window=0.005, gravity=g)
     assert abs(drop.onset(z) - onset) <= 3
     assert drop.onset(np.zeros(100)) is None
+    assert drop._replace(lead=3.0e-3).onset(z) == drop.onset(z) - 30  # a lead starts the record in levitation

@@ -294,10 +294,14 @@ def test_amb_release_decays_from_the_onset_and_each_rk4_stage_reads_its_own_time
     base = load_config().model()
     amb = fx.resolve("amb_release")
     tau, h, t0 = 1.0e-3, 1.0e-4, 3.0e-4
-    model = base._replace(effects=fx.Effects((amb,), ({"share": 1.0, "decay_time": tau},)))
+    model = base._replace(effects=fx.Effects((amb,), ({"share": 1.0, "decay_time": tau, "release": 0.0},)))
     g, xi = base.rig.gravity, jnp.zeros(base.law.state_size)
     for t in (0.0, tau, 5 * tau):
         np.testing.assert_allclose(phi(at_time(model, t), xi)[6], -g * (1.0 - np.exp(-t / tau)), atol=1e-12)
+    held = base._replace(effects=fx.Effects((amb,), ({"share": 1.0, "decay_time": tau, "release": 2 * tau},)))
+    for t in (0.0, 2 * tau, 3 * tau):  # levitated until the release, then letting go as from the onset
+        np.testing.assert_allclose(phi(at_time(held, t), xi)[6], -g * (1.0 - np.exp(-max(t - 2 * tau, 0.0) / tau)),
+                                   atol=1e-12)
     exact = -g * h + g * tau * np.exp(-t0 / tau) * (1.0 - np.exp(-h / tau))
     np.testing.assert_allclose(rk4_step(at_time(model, t0), xi, h)[6], exact, rtol=1e-6)
     np.testing.assert_allclose(step_with_jacobian(at_time(model, t0), xi, h)[0][6], exact, rtol=1e-6)

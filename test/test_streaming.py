@@ -406,13 +406,15 @@ def test_importing_the_core_sets_the_xla_options_and_keeps_a_users_own():
     assert kept.stdout.strip() == own
 
 
-@pytest.mark.parametrize("kind", ["sample_by_sample", "random_batches"])
-def test_stream_equals_offline_with_the_amb_letting_go_in_time(kind):
+@pytest.mark.parametrize("kind,lead", [("sample_by_sample", 0.0), ("random_batches", 0.0), ("random_batches", 3e-3)])
+def test_stream_equals_offline_with_the_amb_letting_go_in_time(kind, lead):
     """A model with the AMB's force decaying from the drop onset (a clocked effect): each chunk's rows are
-    timed from the onset's stamp as offline times them from the onset's row, in any batching."""
+    timed from the onset's stamp as offline times them from the onset's row, in any batching; with a lead
+    (`drop_detection.lead`) both start that much earlier, in levitation."""
     config = load_config(overrides={
         "contact.k_R": 1.0e9, "contact.c_R": 1.0e5, "contact.mu": 0.02, "contact.k_Z": 1.0e9, "contact.c_Z": 1.0e5,
         "contact.k_ZR": 0.01, "effects.active": ["amb_release"], "rig.amb_stiffness": 2.0e6, "rig.amb_damping": 2.0e4,
+        "drop_detection.lead": lead,
     })
     record = model_drop_record(duration=0.03)
     reference = offline(*record, config=config)

@@ -304,8 +304,9 @@ def _amb_release(xi, p, rig, t):
     """The AMB's force as it lets go after the drop: its PD law about the bearing's centre (the rig's
     amb_stiffness, N/m, and amb_damping, N s/m), its cancelling of the unbalance force (the rig's
     amb_unbalance_compensation of m e omega^2 along theta) and its support of the weight (m g), all
-    times share exp(-t / decay_time), t the time since the drop onset (s)."""
-    gain = p["share"] * jnp.exp(-t / p["decay_time"])
+    times share exp(-max(t - release, 0) / decay_time), t the time since the drop onset (s): held until
+    the release, which lies after the onset where the record starts in levitation (`drop_detection.lead`)."""
+    gain = p["share"] * jnp.exp(-jnp.maximum(t - p["release"], 0.0) / p["decay_time"])
     k, c = rig.amb_stiffness, rig.amb_damping
     compensation = rig.amb_unbalance_compensation * rig.mass * rig.eccentricity * rig.speed**2
     return gain * jnp.stack([
@@ -409,11 +410,12 @@ RIG_TERMS: dict[str, Effect] = {
             "amb_release",
             _amb_release,
             {
-                "share": (1.0, "1", "share of the AMB's force still acting at the drop onset"),
+                "share": (1.0, "1", "share of the AMB's force acting at the drop onset and until the release"),
                 "decay_time": (1.0e-3, "s", "time constant of the AMB's force after the drop"),
+                "release": (0.0, "s", "when the AMB starts to let go, after the onset (starts at drop_detection.lead)"),
             },
             _amb_release.__doc__,
-            bounds={"share": (0.0, 2.0), "decay_time": (1.0e-6, 1.0)},
+            bounds={"share": (0.0, 2.0), "decay_time": (1.0e-6, 1.0), "release": (0.0, 0.1)},
             clocked=True,
         ),
     )

@@ -110,6 +110,7 @@ class DropDetector(NamedTuple):
     threshold: float  # m below the levitated mean of z
     levitated_window: float  # s of levitation averaged for the reference
     gravity: float  # m/s^2, for the free-fall time of the threshold
+    lead: float = 0.0  # s the onset lies before the free fall's start as well: the record starts in levitation
 
     @property
     def window_samples(self) -> int:
@@ -118,8 +119,9 @@ class DropDetector(NamedTuple):
 
     @property
     def fall_samples(self) -> int:
-        """Rows the onset lies before the threshold crossing: the free-fall time sqrt(2 threshold / g)."""
-        return int(round(np.sqrt(2.0 * self.threshold / self.gravity) / self.sample_period))
+        """Rows the onset lies before the threshold crossing: the free-fall time sqrt(2 threshold / g)
+        and the `lead`."""
+        return int(round((np.sqrt(2.0 * self.threshold / self.gravity) + self.lead) / self.sample_period))
 
     def reference(self, z: np.ndarray) -> float:
         """Mean of the finite z (m) over the levitated window (0 if none)."""
@@ -129,8 +131,8 @@ class DropDetector(NamedTuple):
 
     def onset(self, z: np.ndarray, reference: float | None = None) -> int | None:
         """Index of the drop onset: the first finite z below `reference` - threshold, moved back by
-        `fall_samples`; None if z never falls that far. `reference`: the levitated mean z (m) when
-        known (a later segment of a record); else `self.reference(z)`."""
+        `fall_samples` (the free fall's time and the `lead`); None if z never falls that far. `reference`: the
+        levitated mean z (m) when known (a later segment of a record); else `self.reference(z)`."""
         if reference is None:
             reference = self.reference(z)
         below = np.flatnonzero(np.isfinite(z) & (z < reference - self.threshold))

@@ -108,6 +108,7 @@ class TrainingSettings:
 class DropDetection:
     threshold: float  # m below the levitated mean of z
     levitated_window: float  # s
+    lead: float = 0.0  # s the record starts before the free fall: in levitation, the AMB's release modelled
 
 
 EXECUTORS = ("events", "single")
@@ -217,7 +218,9 @@ class Config:
 
     def drop_detector(self) -> DropDetector:
         """The drop onset rule of `drop_detection.*` on this rig's sample grid."""
-        return DropDetector(self.sample_period, self.drop.threshold, self.drop.levitated_window, self.rig.gravity)
+        return DropDetector(
+            self.sample_period, self.drop.threshold, self.drop.levitated_window, self.rig.gravity, self.drop.lead
+        )
 
     def stream_settings(self, **overrides: Any) -> StreamSettings:
         """The streaming estimator's settings (`drop_detection.*`, `sensor.*`, `node.*`); `overrides` by field name."""
@@ -396,6 +399,12 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
     rotor_p0 = read.numbers("filter.initial_covariance", STATE_SIZE, non_negative=True)
     process, initial = state_noise(rotor_q, rotor_p0, law.spins_ring, ring_q, ring_p0)
     noise = FilterNoise(process=process, measurement=np.full(3, measurement_sigma**2), initial=initial)
+    drop = DropDetection(
+        threshold=read.number("drop_detection.threshold", 20e-6, positive=True),
+        levitated_window=read.number("drop_detection.levitated_window", 0.005, positive=True),
+        lead=read.number("drop_detection.lead", 0.0, non_negative=True),
+    )
+    effects = _effects(read, flat, drop.lead)
     config = Config(
         rig=rig,
         nominal=nominal,
@@ -404,10 +413,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         sample_period=read.number("sensor.sample_period", positive=True),
         noise_rms=read.number("sensor.noise_rms", non_negative=True),
         quantisation=read.number("sensor.quantisation", 0.0, non_negative=True),
-        drop=DropDetection(
-            threshold=read.number("drop_detection.threshold", 20e-6, positive=True),
-            levitated_window=read.number("drop_detection.levitated_window", 0.005, positive=True),
-        ),
+        drop=drop,
         regularisation=_regularisation(read),
         training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
         law=law,
@@ -417,7 +423,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         source=source,
         parameters=dict(flat),
         node=_node_settings(read),
-        effects=_effects(read, flat),
+        effects=effects,
     )
     read.used.update(k for k in flat if k.startswith("simulator."))
     unknown = sorted(set(flat) - read.used)
@@ -571,8 +577,11 @@ def _friction_models(read: ParameterReader) -> tuple[str, ...]:
     return tuple(dict.fromkeys(models))
 
 
-def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
-    """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values."""
+def _effects(read: ParameterReader, flat: Mapping[str, Any], lead: float = 0.0) -> Effects:
+    """The `effects.*` section: `active` names, `user.<name>` dotted paths, `<name>.<parameter>` values. A
+    clocked effect's `release` (s after the onset, as `amb_release`'s) starts at `lead` (`drop_detection.lead`:
+    the record starts that long before the free fall, so the AMB lets go about then); a lead needs a clocked
+    force effect, or the model's rotor would fall from the record's start while the AMB still holds it."""
     active = read._get("effects.active", [])
     if (
         not isinstance(active, list)
@@ -589,11 +598,20 @@ def _effects(read: ParameterReader, flat: Mapping[str, Any]) -> Effects:
         chosen = [effects_library.resolve(user.get(name, name), name=name, when=when.get(name, "")) for name in active]
     except (ValueError, ImportError, AttributeError) as error:
         raise ConfigError(f"{read.source}: effects.active: {error}") from None
+    if lead > 0.0 and not any(e.clocked and e.kind == effects_library.FORCE for e in chosen):
+        raise ConfigError(
+            f"{read.source}: drop_detection.lead = {lead:g} s starts each record in levitation, where the AMB still "
+            "holds the rotor: switch on its force (effects.active: [amb_release], with rig.amb_stiffness, "
+            "rig.amb_damping and rig.amb_unbalance_compensation as the controller has them) or set the lead to 0"
+        )
     values = {}
     for effect in chosen:
+        defaults = effect.defaults()
+        if effect.clocked and "release" in defaults:
+            defaults["release"] = lead
         values[effect.name] = {
             parameter: read.number(f"effects.{effect.name}.{parameter}", default)
-            for parameter, default in effect.defaults().items()
+            for parameter, default in defaults.items()
         }
     stray = sorted(
         k
