@@ -304,3 +304,15 @@ def test_file_carries_the_calibrated_clearances_and_the_model_sees_them(tmp_path
         path.write_text(yaml.safe_dump({**broken, "content_sha256": content_sha256(broken)}))
         with pytest.raises(CoefficientFileError, match=r"contact\.radial_clearance and contact\.axial_clearance"):
             load_coefficients(path, CONFIG)
+
+
+def test_a_file_trained_with_a_lead_is_refused_where_the_records_start_elsewhere(tmp_path):
+    """amb_release's release is timed from the record's start, which `drop_detection.lead` moves: a file saved with a
+    lead loads only with the same lead, and the refusal names it; without a lead the fingerprint is as before."""
+    amb = {"effects.active": ["amb_release"], "rig.amb_stiffness": 2.0e6, "rig.amb_damping": 2.0e4}
+    plain, led = load_config(overrides=amb), load_config(overrides={**amb, "drop_detection.lead": 3.0e-3})
+    assert "drop_detection.lead" not in plain.model_identity() and plain.fingerprint() != led.fingerprint()
+    path = save_coefficients(tmp_path / "c.yaml", random_coeffs(), led, TrainingRecord(bags=[]))
+    assert load_coefficients(path, led).effects.params[0]["release"] == 3.0e-3
+    with pytest.raises(CoefficientFileError, match=r"differs in: drop_detection.lead: file 0.003, rig None"):
+        load_coefficients(path, plain)

@@ -242,9 +242,11 @@ class Config:
 
     def model_identity(self) -> dict[str, Any]:
         """The rig values a coefficient file is only valid for, as plain JSON-able data: the
-        rotor and the sample period. The contact law, its constants, the kernel and the filter
-        noise are what the file itself carries (calibrated), not the YAML's guesses."""
-        return {"rig": dict(self.rig._asdict()), "sample_period": self.sample_period}
+        rotor and the sample period, and a `drop_detection.lead` where there is one (the records' start, from
+        which clocked effects such as amb_release's release are timed). The contact law, its constants, the
+        kernel and the filter noise are what the file itself carries (calibrated), not the YAML's guesses."""
+        lead = {"drop_detection.lead": self.drop.lead} if self.drop.lead else {}
+        return {"rig": dict(self.rig._asdict()), "sample_period": self.sample_period, **lead}
 
     def calibrated(
         self,
