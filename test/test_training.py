@@ -347,6 +347,30 @@ def test_minimise_counts_the_loss_evaluations_its_line_searches_took():
     assert f"after {convergence.steps} steps ({convergence.evaluations} loss evaluations)" in log.getvalue()
 
 
+def test_minimise_restarted_where_the_losss_change_stopped_it_goes_on_down_the_valley():
+    """`restarts`: L-BFGS-B stopped by the relative-reduction test on a short step starts again from there, its
+    curvature memory cleared, while a restart lowers the loss by more than the tolerance (diagnose's fits from the
+    friction grid, `FRICTION_START_RESTARTS`). On Rosenbrock's valley at a loose
+    tolerance the first run stops after a few steps far from the minimum; the restarts walk the valley."""
+    import io
+
+    from scipy.optimize import rosen, rosen_der
+
+    from touchdown_ros.workflows.optimise import minimise
+
+    def loss(theta):
+        return rosen(theta), rosen_der(theta)
+
+    start = np.array([-1.2, 1.0])
+    _, once = minimise(loss, start, 200, 1.0e-2, "rosen", io.StringIO())
+    log = io.StringIO()
+    theta, restarted = minimise(loss, start, 200, 1.0e-2, "rosen", log, restarts=3)
+    assert "REDUCTION OF F" in once.reason and once.final_loss > 1.0
+    assert "restarted where the loss's change stopped it" in log.getvalue()
+    assert restarted.final_loss < 0.01 * once.final_loss and restarted.steps > once.steps
+    assert restarted.final_loss == rosen(theta) and len(restarted.history) == restarted.steps
+
+
 def test_a_fit_restarted_records_both_runs_steps_and_losses():
     """A fit restarted (stage 1's damping or friction restart) is one record of both runs: its loss history has a
     loss for each of the steps it counts, from the first run's start to the second's end, as `touchdown report`
