@@ -1035,8 +1035,9 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
 
 def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_switched_on(tmp_path, soft_rig, capsys):
     """`touchdown train --start C -p effects.active:=[E]`: stage 1 fits C's law alone, from C's constants (the guess and
-    the start), with E beside them, as diagnose fits a candidate; the file says where it started. Given with --init
-    (which skips stage 1) it is refused and nothing is written."""
+    the start), with E beside them, as diagnose fits a candidate: E alone first, C's calibration held, where C did not
+    fit it; the file says where it started. Given with --init (which skips stage 1) it is refused and nothing is
+    written."""
     v, rig = soft_rig
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
     short = ["--config", str(rig), "-p", "contact.friction:=paper", "--duration", "0.05", "--steps", "0"]
@@ -1050,6 +1051,7 @@ def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_swit
     said = capsys.readouterr().err
     law = first["training"]["calibration"]["law"].split(",")[0]
     assert f"stage 1 starts from {baseline}: {law}" in said, said[:2000]
+    assert re.search(r"\[calibrate [^,\]]+, axial_load alone\] converged", said), said[:2000]
     calibration = yaml.safe_load(loaded.read_text())["training"]["calibration"]
     assert calibration["started_from"] == str(baseline)
     assert {c["contact_law"] for c in calibration["candidates"]} == {
@@ -1057,6 +1059,10 @@ def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_swit
              if c.get("refined_criterion_above_best") == 0)}
     assert calibration["guess"] == pytest.approx(first["training"]["calibration"]["calibrated"], rel=1e-9)
     assert "axial_load.force" in calibration["relative_standard_error"]
+    again = tmp_path / "again.yaml"  # from a file that fitted the load: nothing new, nothing alone
+    assert main(["train", str(bags[0]), *short, "-o", str(again), "--start", str(loaded),
+                 "-p", "effects.active:=[axial_load]"]) == 0
+    assert " alone" not in capsys.readouterr().err
     refused = tmp_path / "refused.yaml"
     code = main(["train", str(bags[0]), *short, "-o", str(refused), "--start", str(baseline), "--init", str(baseline)])
     assert code == EXIT_BAD_INPUT and not refused.exists()

@@ -383,8 +383,9 @@ def _merge_effects(active: Effects, started: Effects) -> Effects:
 def calibration_started_from(config: Config, path: Path, stream=STDERR) -> Config:
     """`config` with stage 1 started from the coefficient file at `path` (`touchdown train --start`): the file's
     contact law as the one candidate, its constants, friction and process noise as the guess and the start, the rig's
-    active effects from the file's values where it fitted them. The rig YAML still says what is fitted (its effects,
-    `training.*`); the axial support is fitted again from its grid (`training.axial_support: given`: the YAML's)."""
+    active effects from the file's values where it fitted them, those it did not fit first alone (as diagnose fits a
+    candidate). The rig YAML still says what is fitted (its effects, `training.*`); the axial support is fitted again
+    from its grid (`training.axial_support: given`: the YAML's)."""
     loaded = load_coefficients(path, config)
     calibrated = loaded.config(config)
     given = config.training.axial_support == "given"
@@ -392,9 +393,10 @@ def calibration_started_from(config: Config, path: Path, stream=STDERR) -> Confi
         *((config.law.support_preload, config.law.support_span, config.law.support_log_covariance) if given else ())
     )
     print(f"stage 1 starts from {path}: {law.label}, friction {law.friction}", file=stream, flush=True)
+    new = tuple(name for name in config.effects.names if name not in loaded.effects.names)
     return replace(
         calibrated, law=law, effects=_merge_effects(config.effects, loaded.effects),
-        training=replace(config.training, contact_laws=(law,), friction_models=()),
+        training=replace(config.training, contact_laws=(law,), friction_models=(), effects_alone_first=new),
     )
 
 
