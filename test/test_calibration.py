@@ -1036,8 +1036,8 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
 def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_switched_on(tmp_path, soft_rig, capsys):
     """`touchdown train --start C -p effects.active:=[E]`: stage 1 fits C's law alone, from C's constants (the guess and
     the start), with E beside them, as diagnose fits a candidate: where C did not fit E, also from E fitted alone
-    first, C's calibration held, the lower screened fit kept; the file says where it started. Given with --init (which skips stage 1) it is refused and nothing is
-    written."""
+    first, C's calibration held, the lower screened fit kept; the file says where it started. Given with --init
+    (which skips stage 1) it is refused and nothing is written."""
     v, rig = soft_rig
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
     short = ["--config", str(rig), "-p", "contact.friction:=paper", "--duration", "0.05", "--steps", "0"]

@@ -350,8 +350,8 @@ def test_minimise_counts_the_loss_evaluations_its_line_searches_took():
 def test_minimise_restarted_where_the_losss_change_stopped_it_goes_on_down_the_valley():
     """`restarts`: L-BFGS-B stopped by the relative-reduction test on a short step starts again from there, its
     curvature memory cleared, while a restart lowers the loss by more than the tolerance (diagnose's fits from the
-    friction grid, `FRICTION_START_RESTARTS`). On Rosenbrock's valley at a loose
-    tolerance the first run stops after a few steps far from the minimum; the restarts walk the valley."""
+    friction grid, `FRICTION_START_RESTARTS`). On Rosenbrock's valley at a loose tolerance the first run stops after
+    a few steps far from the minimum; the restarts walk the valley."""
     import io
 
     from scipy.optimize import rosen, rosen_der
