@@ -1036,7 +1036,8 @@ def test_two_friction_starts_keep_the_lower_refined_fit(tmp_path, soft_rig, caps
 def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_switched_on(tmp_path, soft_rig, capsys):
     """`touchdown train --start C -p effects.active:=[E]`: stage 1 fits C's law alone, from C's constants (the guess and
     the start), with E beside them, as diagnose fits a candidate: where C did not fit E, also from E fitted alone
-    first, C's calibration held, the lower screened fit kept; the file says where it started. Given with --init
+    first, C's calibration held, both screened fits refined and the lower kept; the file says where it started and
+    both refined losses. Given with --init
     (which skips stage 1) it is refused and nothing is written."""
     v, rig = soft_rig
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
@@ -1052,9 +1053,14 @@ def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_swit
     law = first["training"]["calibration"]["law"].split(",")[0]
     assert f"stage 1 starts from {baseline}: {law}" in said, said[:2000]
     assert re.search(r"\[calibrate [^,\]]+, axial_load alone\] converged", said), said[:2000]
-    assert re.search(r"axial_load alone first\] its fit ends at \S+, the fit from the file's values at \S+; kept: ",
-                     said), said[:3000]
+    assert re.search(r"axial_load alone first\] its fit ends at \S+, the fit from the file's values at \S+; both are "
+                     r"refined", said), said[:3000]
+    assert re.search(r"\[effect start\] .+ refined from (the file's values|axial_load alone first) against .+ kept: ",
+                     said), said[-3000:]
     calibration = yaml.safe_load(loaded.read_text())["training"]["calibration"]
+    effect_start, = [s for s in calibration["effect_starts"] if s["law"] == calibration["law"]]
+    kept = min(effect_start["screened_kept_loss"], effect_start["other_loss"])
+    assert calibration["final_loss"] == pytest.approx(kept, rel=1e-12), (calibration["final_loss"], effect_start)
     assert calibration["started_from"] == str(baseline)
     assert {c["contact_law"] for c in calibration["candidates"]} == {
         next(c["contact_law"] for c in first["training"]["calibration"]["candidates"]

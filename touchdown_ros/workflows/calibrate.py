@@ -105,6 +105,8 @@ class Calibration:
     process_noise_pass: dict[str, Any] | None = None
     # with `training.friction_start: both`: per refined law, both starts' final losses and which was kept
     friction_starts: tuple[dict[str, Any], ...] = ()
+    # with `train --start` adding effects: per refined law, both starts' refined losses and which was kept
+    effect_starts: tuple[dict[str, Any], ...] = ()
 
     def clearance_changes(self) -> dict[str, float]:
         """m, the calibrated r0 and z0 minus the rig YAML's (empty where they were not fitted)."""
@@ -134,6 +136,7 @@ class Calibration:
             **({"friction_models": list(self.frictions)} if self.frictions else {}),
             **({"process_noise_pass": self.process_noise_pass} if self.process_noise_pass else {}),
             **({"friction_starts": list(self.friction_starts)} if self.friction_starts else {}),
+            **({"effect_starts": list(self.effect_starts)} if self.effect_starts else {}),
             "notes": self.notes(),
             **self.convergence.as_dict(),
         }
@@ -471,13 +474,15 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
 
     def from_new_effects_alone(
         law: ContactLaw, objective: Callable, x0: np.ndarray, fit: tuple[np.ndarray, Convergence]
-    ) -> tuple[np.ndarray, Convergence]:
-        """The screening's fit `fit` from x0, or the same fit from x0 with `training.effects_alone_first` (the effects
-        `train --start` adds) fitted alone first, the start file's calibration held, whichever ends lower. Moved
-        together from that start, the constants' steep directions set the first steps' length and the fit can stop,
-        converged by the loss's change, before a new effect has moved (a hidden x sensor offset with the AMB's term
-        and a lead: 0.2 % of the truth); but where the file's constants took up the effect (a hidden z gain: mu 2.0),
-        the effect alone moves too far (2026-12-06, docs/workbench.md)."""
+    ) -> tuple[tuple[np.ndarray, Convergence], tuple[str, np.ndarray]]:
+        """The screening's fit `fit` from x0 and the same fit from x0 with `training.effects_alone_first` (the
+        effects `train --start` adds) fitted alone first, the start file's calibration held: the one that ends lower,
+        and the other's label and end, which is refined too (`from_the_other_start`). Moved together from the file's
+        values, the constants' steep directions set the first steps' length and the fit can stop, converged by the
+        loss's change, before a new effect has moved (a hidden x sensor offset with the AMB's term and a lead: 0.2 %
+        of the truth); but where the file's constants took up the effect (a hidden z gain: mu 2.0), the effect alone
+        moves too far. The screened losses did not always rank them as the refined ones do (a hidden drag:
+        2026-12-06, docs/workbench.md)."""
         names = settings.effects_alone_first
         alone = Coordinates(coordinates.theta(x0), stage1_flags(
             effects, False, fit_f0=False, fitted_effects=names, fit_support=False,
@@ -492,11 +497,12 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             objective, coordinates.initial(**alone.theta(x_alone)._asdict()), settings.calibration_steps,
             screen_tolerance, f"{label} first", stream, describe, bounds=bounds_of(coordinates),
         )
-        kept = other if other[1].final_loss < fit[1].final_loss else fit
+        alone_lower = other[1].final_loss < fit[1].final_loss
         print(f"[{label} first] its fit ends at {other[1].final_loss:.7g}, the fit from the file's values at "
-              f"{fit[1].final_loss:.7g}; kept: {'this one' if kept is other else 'the fit from the file'}", file=stream,
-              flush=True)
-        return kept
+              f"{fit[1].final_loss:.7g}; both are refined", file=stream, flush=True)
+        start_alone = (f"{', '.join(names)} alone first", other[0])
+        start_file = ("the file's values", fit[0])
+        return (other, start_file) if alone_lower else (fit, start_alone)
 
     # Screen every candidate law, rigid and with a yielding axial support (training.axial_support), to
     # a loose tolerance on a few bags; refine the one of the lowest criterion on all.
@@ -534,8 +540,9 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
                 f"{', '.join(bad)}: the filter diverges with the guessed contact constants ({law.label}); "
                 "give contact.* closer to the bearing's (a data sheet's stiffness within 5x) or check the bag"
             )
+        other_start = None
         if settings.effects_alone_first:
-            x, convergence = from_new_effects_alone(law, objective, x0, (x, convergence))
+            (x, convergence), other_start = from_new_effects_alone(law, objective, x0, (x, convergence))
         ahead.wait(LOSS_PROGRAM)
         restart = damping_restart(loss, coordinates.names, x, convergence.final_loss, stream) if thorough else None
         if restart is not None:
@@ -545,9 +552,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             )
             convergence = after_restart(convergence, again, "damping", settings.calibration_steps)
         if settings.axial_support != "yielding":
-            screened.append(
-                Candidate(criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence)
-            )
+            screened.append(Candidate(
+                criterion(convergence.final_loss, 0, n_screen, kind), law, coordinates, x, convergence,
+                other_start=other_start,
+            ))
         if settings.axial_support in ("auto", "yielding"):
             fitted = fit_support(
                 law, screen_batch, coordinates.theta(x), screen_tolerance, f"calibrate {law.label} + yielding support"
@@ -555,7 +563,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             if fitted is not None:
                 with_support, x_s, convergence_s = fitted
                 score = criterion(convergence_s.final_loss, len(SUPPORT_NAMES), n_screen, kind)
-                screened.append(Candidate(score, law, with_support, x_s, convergence_s, yields=True))
+                if other_start is not None:  # the other start's constants with this fit's support
+                    other_start = (other_start[0], with_support_at(
+                        with_support, coordinates.theta(other_start[1]), with_support.theta(x_s).log_support
+                    ))
+                screened.append(Candidate(
+                    score, law, with_support, x_s, convergence_s, yields=True, other_start=other_start
+                ))
     if not screened:
         raise TrainingError(
             f"{', '.join(map(str, data.paths))}: no axial contact in the training bags, so a yielding axial support "
@@ -712,9 +726,29 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
               file=stream, flush=True)
         return kept
 
-    refined, friction_starts = [], []
+    def from_the_other_start(c: Candidate, fit: Candidate) -> Candidate:
+        """`fit`, or the candidate refined from the other screened start of `train --start` (`from_new_effects_alone`)
+        where that ends lower."""
+        label, start = c.other_start
+        other = refine_finalist(c._replace(x=start), f"{c.name} from {label}", required=False)
+        kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        effect_starts.append({
+            "law": c.name, "screened_kept_loss": float(fit.convergence.final_loss),
+            "other_start": label, "other_loss": None if other is None else float(other.convergence.final_loss),
+            "kept": "other" if kept is other else "screened",
+        })
+        print(f"[effect start] {c.name}: "
+              + ("the refinement from the other start did not converge" if other is None else
+                 f"{other.convergence.final_loss:.7g} refined from {label} against {fit.convergence.final_loss:.7g}"
+                 f" from the lower screened fit; kept: the {'other' if kept is other else 'screened'} one"),
+              file=stream, flush=True)
+        return kept
+
+    refined, friction_starts, effect_starts = [], [], []
     for c in finalists:
         fit = refine_finalist(c, c.name)
+        if c.other_start is not None:
+            fit = from_the_other_start(c, fit)
         if spinning and settings.friction_start == "both":
             fit = from_the_friction_grid(c, fit)
         refined.append(fit)
@@ -787,6 +821,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         sensor_noise=sigma,
         criterion=best.score,
         friction_starts=tuple(friction_starts),
+        effect_starts=tuple(effect_starts),
     )
 
 
@@ -1028,6 +1063,8 @@ class Candidate(NamedTuple):
     x: np.ndarray  # its free coordinates at the end of the screening fit
     convergence: Convergence
     yields: bool = False
+    # with `train --start` adding effects: the other screened start's label and free coordinates (refined too)
+    other_start: tuple[str, np.ndarray] | None = None
 
     @property
     def name(self) -> str:
