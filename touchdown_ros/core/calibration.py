@@ -462,6 +462,16 @@ def stage1_flags(
     )
 
 
+def effect_coordinates(start: Stage1, names: Sequence[str]) -> Coordinates:
+    """The coordinates of the effects `names` alone, everything else held at `start` (its constants, Q, other
+    effects, and the support and Stribeck drop where it has them): a new effect fitted to a calibrated model."""
+    return Coordinates(start, stage1_flags(
+        start.effects, False, fit_f0=False, fitted_effects=names,
+        fit_support=None if start.log_support is None else False,
+        fit_stribeck=None if start.log_stribeck is None else False,
+    ))
+
+
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
     """A guess of one contact law carried to another: the same spring force and the same damping
     force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the

@@ -24,6 +24,7 @@ from touchdown_ros.core.calibration import (
     clearance_width,
     convert_guess,
     data_scales,
+    effect_coordinates,
     effect_scales,
     filtered_states,
     log_nominal,
@@ -484,10 +485,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         moves too far. The screened losses did not always rank them as the refined ones do (a hidden drag:
         2026-12-06, docs/workbench.md)."""
         names = settings.effects_alone_first
-        alone = Coordinates(coordinates.theta(x0), stage1_flags(
-            effects, False, fit_f0=False, fitted_effects=names, fit_support=False,
-            fit_stribeck=False if fit_stribeck else None,
-        ))
+        alone = effect_coordinates(coordinates.theta(x0), names)
         label = f"calibrate {law.label}, {', '.join(names)} alone"
         x_alone, _ = minimise(
             problem(law, (screen_batch,), alone, screened=True).objective, alone.initial(),

@@ -17,6 +17,7 @@ from touchdown_ros.core.calibration import (
     Stage1,
     apply_scales,
     clearance_width,
+    effect_coordinates,
     effect_scales,
     force_scaled,
     information_standard_errors,
@@ -295,7 +296,7 @@ def _fit_candidates(
             # The candidate alone first, the model held: moved together from the start, the constants'
             # steep directions (a stiff contact's damping) set the first steps' length and the fit
             # can stop, converged by the loss's change, before the candidate has moved.
-            alone = Coordinates(start, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[name]))
+            alone = effect_coordinates(start, [name])
             x, _ = minimise(
                 problem.objective(alone, batch), alone.initial(), settings.steps, settings.tolerance,
                 f"fit {name} alone{label}", stream, bounds=problem.bounds(alone),
@@ -412,9 +413,7 @@ def _fit_candidates(
     for fit in [f for f in ranked(selection) if not f.convergence.diverged][: settings.per_bag]:
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
-            coordinates = Coordinates(
-                theta, stage1_flags(problem.effects, False, fit_f0=False, fitted_effects=[fit.name])
-            )
+            coordinates = effect_coordinates(theta, [fit.name])
             batch = problem.gated(chosen, record)
             objective = problem.objective(coordinates, batch)
             x, _ = minimise(
