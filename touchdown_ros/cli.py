@@ -298,8 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--start", type=Path, metavar="COEFFS",
         help="run stage 1 from this coefficient file's calibration (its contact law, constants, friction and Q), "
-        "with the rig's active effects fitted beside them (those the file did not fit alone first): after "
-        "`touchdown diagnose --coeffs COEFFS` named one",
+        "with the rig's active effects fitted beside them (those the file did not fit also alone first; both starts "
+        "refined, the lower kept): after `touchdown diagnose --coeffs COEFFS` named one",
     )
     p.add_argument("--resume", action="store_true", help="continue from OUT.checkpoint of an interrupted run")
     p.add_argument(

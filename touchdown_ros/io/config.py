@@ -102,8 +102,8 @@ class TrainingSettings:
     friction_ceiling: float | None = None  # stage 1 fits mu and k_ZR at most this (None, .inf in YAML: unbounded)
     smoothing_noise: str = "likelihood"  # the offline estimate's Q (SMOOTHING_NOISE_CHOICES)
     friction_drop: str = "given"  # stage 1: the ring friction's Stribeck drop (FRICTION_DROP_CHOICES)
-    # not a YAML parameter: the effects `train --start` switches on that its file did not fit, which stage 1 fits
-    # alone first, the file's calibration held
+    # not a YAML parameter: the effects `train --start` switches on that its file did not fit, which stage 1 also fits
+    # alone first, the file's calibration held (both starts refined, the lower kept)
     effects_alone_first: tuple[str, ...] = ()
 
 

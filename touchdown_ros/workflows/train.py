@@ -383,9 +383,10 @@ def _merge_effects(active: Effects, started: Effects) -> Effects:
 def calibration_started_from(config: Config, path: Path, stream=STDERR) -> Config:
     """`config` with stage 1 started from the coefficient file at `path` (`touchdown train --start`): the file's
     contact law as the one candidate, its constants, friction and process noise as the guess and the start, the rig's
-    active effects from the file's values where it fitted them, those it did not fit first alone (as diagnose fits a
-    candidate). The rig YAML still says what is fitted (its effects, `training.*`); the axial support is fitted again
-    from its grid (`training.axial_support: given`: the YAML's)."""
+    active effects from the file's values where it fitted them, those it did not fit also from a fit of them alone (as
+    diagnose fits a candidate; both starts refined, the lower kept). The rig YAML still says what is fitted (its
+    effects, `training.*`); the axial support is fitted again from its grid (`training.axial_support: given`: the
+    YAML's)."""
     loaded = load_coefficients(path, config)
     calibrated = loaded.config(config)
     given = config.training.axial_support == "given"
