@@ -1059,7 +1059,7 @@ def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_swit
                      said), said[-3000:]
     calibration = yaml.safe_load(loaded.read_text())["training"]["calibration"]
     effect_start, = [s for s in calibration["effect_starts"] if s["law"] == calibration["law"]]
-    kept = min(effect_start["screened_kept_loss"], effect_start["other_loss"])
+    kept = min(effect_start["screening_start_loss"], effect_start["other_loss"])
     assert calibration["final_loss"] == pytest.approx(kept, rel=1e-12), (calibration["final_loss"], effect_start)
     assert calibration["started_from"] == str(baseline)
     assert {c["contact_law"] for c in calibration["candidates"]} == {

@@ -106,7 +106,8 @@ class Calibration:
     process_noise_pass: dict[str, Any] | None = None
     # with `training.friction_start: both`: per refined law, both starts' final losses and which was kept
     friction_starts: tuple[dict[str, Any], ...] = ()
-    # with `train --start` adding effects: per refined law, both starts' refined losses and which was kept
+    # with `train --start` adding effects: per refined law, the refined losses from the start the screening preferred
+    # and from the other start (its label), and which was kept
     effect_starts: tuple[dict[str, Any], ...] = ()
 
     def clearance_changes(self) -> dict[str, float]:
@@ -731,7 +732,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         other = refine_finalist(c._replace(x=start), f"{c.name} from {label}", required=False)
         kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
         effect_starts.append({
-            "law": c.name, "screened_kept_loss": float(fit.convergence.final_loss),
+            "law": c.name, "screening_start_loss": float(fit.convergence.final_loss),
             "other_start": label, "other_loss": None if other is None else float(other.convergence.final_loss),
             "kept": "other" if kept is other else "screened",
         })
