@@ -1037,8 +1037,7 @@ def test_train_start_runs_stage_1_from_a_files_calibration_with_the_effects_swit
     """`touchdown train --start C -p effects.active:=[E]`: stage 1 fits C's law alone, from C's constants (the guess and
     the start), with E beside them, as diagnose fits a candidate: where C did not fit E, also from E fitted alone
     first, C's calibration held, both screened fits refined and the lower kept; the file says where it started and
-    both refined losses. Given with --init
-    (which skips stage 1) it is refused and nothing is written."""
+    both refined losses. Given with --init (which skips stage 1) it is refused and nothing is written."""
     v, rig = soft_rig
     bags = write_variant_bags(v, tmp_path / "bags", n_drops=1, seed=5)
     short = ["--config", str(rig), "-p", "contact.friction:=paper", "--duration", "0.05", "--steps", "0"]

@@ -562,12 +562,13 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
             if fitted is not None:
                 with_support, x_s, convergence_s = fitted
                 score = criterion(convergence_s.final_loss, len(SUPPORT_NAMES), n_screen, kind)
-                if other_start is not None:  # the other start's constants with this fit's support
-                    other_start = (other_start[0], with_support_at(
+                supported_other = None if other_start is None else (  # its constants with this fit's support
+                    other_start[0], with_support_at(
                         with_support, coordinates.theta(other_start[1]), with_support.theta(x_s).log_support
-                    ))
+                    ),
+                )
                 screened.append(Candidate(
-                    score, law, with_support, x_s, convergence_s, yields=True, other_start=other_start
+                    score, law, with_support, x_s, convergence_s, yields=True, other_start=supported_other
                 ))
     if not screened:
         raise TrainingError(
@@ -702,6 +703,10 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         score = criterion(convergence.final_loss, len(SUPPORT_NAMES) if c.yields else 0, n_valid, kind)
         return c._replace(score=score, x=x, convergence=convergence)
 
+    def lower_refined(fit: Candidate, other: Candidate | None) -> Candidate:
+        """`fit`, or `other` (a refinement from a second start; None: it did not converge) where it ends lower."""
+        return fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+
     def from_the_friction_grid(c: Candidate, fit: Candidate) -> Candidate:
         """`fit`, or the candidate refined from the restart grid's friction pair that lowers the loss on all
         records at its screened fit, where that ends lower (`training.friction_start: both`)."""
@@ -709,7 +714,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         start = friction_restart(loss, c.coordinates.names, c.x, loss(c.x), stream, ceiling=settings.friction_ceiling)
         other = None if start is None else refine_finalist(
             c._replace(x=start), f"{c.name} from the friction grid", required=False)
-        kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        kept = lower_refined(fit, other)
         which = "grid" if kept is other else "screened"
         friction_starts.append({
             "law": c.name, "screened_loss": float(fit.convergence.final_loss),
@@ -730,7 +735,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         where that ends lower."""
         label, start = c.other_start
         other = refine_finalist(c._replace(x=start), f"{c.name} from {label}", required=False)
-        kept = fit if other is None or other.convergence.final_loss >= fit.convergence.final_loss else other
+        kept = lower_refined(fit, other)
         effect_starts.append({
             "law": c.name, "screening_start_loss": float(fit.convergence.final_loss),
             "other_start": label, "other_loss": None if other is None else float(other.convergence.final_loss),
