@@ -345,6 +345,32 @@ def test_diagnose_fits_every_candidate_again_from_the_friction_grid_where_the_ca
         assert lowest and start and start.group(1) == lowest[-1], (name, log)
 
 
+def test_diagnose_fits_move_the_support_and_stribeck_drop_stage_1_fitted_and_hold_those_given(drop_bags):
+    """A yielding axial support the file's stage 1 fitted (its preload and span carry an uncertainty) moves with f0
+    in every candidate's fit: held at the values fitted without the missing effect, it keeps what it took up of it
+    (Table 1's loaded braked drops: the load sized 1.9 % smaller); so does a fitted Stribeck drop. Both given
+    exactly stay as given."""
+    from touchdown_ros.workflows.candidates import FitSettings, fit_candidates
+    from touchdown_ros.workflows.training_data import TrainingData, load_training_data
+
+    data = load_training_data(CONFIG, [drop_bags / "exp_01", drop_bags / "exp_11"])
+    data = TrainingData(data.paths, tuple(r[:433] for r in data.records), data.conditions, data.levitated)
+    settings = FitSettings(steps=3, per_bag=0, from_best=0, to_convergence=0)
+    preload, span = 2.0e4, 5.0e3  # N: below the drops' first axial peaks, so the data move them
+    drop, velocity = 0.3, 50.0  # the ring friction's Stribeck drop (1) over slips the drops have (m/s)
+    fitted, exact = ((0.04, 0.0), (0.0, 1.0)), ((0.0, 0.0), (0.0, 0.0))  # covariance of ln preload, ln span
+    for log_covariance, moves in ((fitted, True), (exact, False)):
+        model = CONFIG.model()
+        law = model.law.with_support(preload, span, log_covariance).with_stribeck(drop, velocity, log_covariance)
+        selection = fit_candidates(CONFIG, model._replace(law=law), data, ["axial_load"], settings, io.StringIO())
+        for fit in selection.fits:
+            if moves:
+                assert fit.nominal["support_preload"] != preload, (fit.name, fit.nominal)
+                assert fit.nominal["friction_drop"] != drop, (fit.name, fit.nominal)
+            else:
+                assert "support_preload" not in fit.nominal and "friction_drop" not in fit.nominal, fit.nominal
+
+
 def test_diagnose_takes_the_fits_the_step_cap_stopped_on_to_convergence(drop_bags):
     """A fit the step cap stopped is not at its optimum: the baseline and the best candidates go on from where they
     stopped until converged, so their sizes and the criterion are the optimum's (a hidden z gain came out 1.044 +-

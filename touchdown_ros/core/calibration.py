@@ -93,6 +93,11 @@ def stribeck_law(law: ContactLaw, log_stribeck: Array) -> ContactLaw:
     return law._replace(friction_drop=jnp.exp(log_stribeck[0]), stribeck_velocity=jnp.exp(log_stribeck[1]))
 
 
+def log_support_of(law: ContactLaw) -> np.ndarray:
+    """ln of `law`'s axial support preload and span (N; +inf where rigid)."""
+    return np.log([float(law.support_preload), float(law.support_span)])
+
+
 def log_stribeck_of(law: ContactLaw) -> np.ndarray:
     """ln of `law`'s Stribeck drop and velocity, where stage 1 starts them and centres their prior;
     ValueError without a drop (no logarithm)."""

@@ -29,6 +29,7 @@ from touchdown_ros.core.calibration import (
     filtered_states,
     log_nominal,
     log_stribeck_of,
+    log_support_of,
     posterior_covariance,
     sensor_noise,
     stage1_flags,
@@ -331,7 +332,7 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
     # Fitted coordinates: f0, the Q factors (nll only) and the effects' parameters, not their gates; the
     # support rigid or as given (held), or yielding (free).
     given = settings.axial_support == "given"  # then the candidate laws carry the YAML's support
-    held_support = np.log([config.law.support_preload, config.law.support_span]) if given else RIGID_LOG_SUPPORT
+    held_support = log_support_of(config.law) if given else RIGID_LOG_SUPPORT
     log_stribeck = jnp.asarray(log_stribeck_of(config.law)) if fit_stribeck else None
     start = stage1_start(jnp.zeros(len(PARAMETER_NAMES)), effects, scales, jnp.asarray(held_support), log_stribeck)
 
@@ -1087,7 +1088,7 @@ def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float
     records (only data above the preload move it, so it must start inside their range); none
     without axial contact."""
     if guess.yields:
-        return [np.log([float(guess.support_preload), float(guess.support_span)])]
+        return [log_support_of(guess)]
     states = np.asarray(filtered_states(model, noise, h, batch)[0])[np.asarray(batch.valid) > 0]
     deepest = float(np.nanmax(-(states[:, 2] + model.rig.axial_clearance), initial=0.0))
     peak = float(normal_force(model.law, model.nominal.k_Z, 0.0, jnp.asarray(deepest), 0.0)) if deepest > 0 else 0.0

@@ -13,6 +13,8 @@ from touchdown_ros.core import effects as fx
 from touchdown_ros.core.calibration import (
     CLEARANCE_NAMES,
     Q_NAMES,
+    STRIBECK_NAMES,
+    SUPPORT_NAMES,
     Coordinates,
     Stage1,
     apply_scales,
@@ -22,6 +24,8 @@ from touchdown_ros.core.calibration import (
     force_scaled,
     information_standard_errors,
     log_nominal,
+    log_stribeck_of,
+    log_support_of,
     stage1_flags,
     stage1_information,
     stage1_information_over,
@@ -103,7 +107,7 @@ class CandidateFit:
     values: dict[str, float]  # fitted physical parameters (unit of `core.effects`)
     sd: dict[str, float]  # their standard errors from the curvature of the loss
     units: dict[str, str]
-    nominal: dict[str, float]  # the model's constants f0 refitted with it
+    nominal: dict[str, float]  # the model's constants refitted with it (`refitted_constants`)
     fitted: Errors  # on the fitted samples
     held_out: dict[str, Errors]  # "all" and per contact phase
     parameters: int  # free coordinates of the fit (ln f0, ln q, the candidate's)
@@ -152,22 +156,37 @@ class _Problem:
         self.every = config.training.held_out_every
         batch = make_batch(list(data.records), np.asarray(config.noise.initial), gates=data.gates(model.effects))
         self.batch = hold_out(batch, self.block, self.every)
-        self.start = stage1_start(self.guess, self.effects, self.scales)
+        # the axial support and the Stribeck drop the file's stage 1 fitted move with f0 too: held, they keep what
+        # they took up of the missing effect (Table 1's loaded braked drops 9 + 11: stage 1 without the load puts
+        # the support's knee at 37.7 kN, with it at 40.4 kN; held at 37.7, the load's fit ended 0.021 per sample
+        # higher and 1.9 % smaller)
+        law = model.law
+        self.fit_support, self.fit_stribeck = law.support_uncertain, law.stribeck_uncertain
+        self.start = stage1_start(
+            self.guess, self.effects, self.scales,
+            jnp.asarray(log_support_of(law)) if self.fit_support else None,
+            jnp.asarray(log_stribeck_of(law)) if self.fit_stribeck else None,
+        )
         # the clearances move with f0, as in training: held at the file's, a hidden load's static part stays in them
         self.fit_clearances = config.training.clearance_tolerance > 0.0
         self.clearance_width = clearance_width(config.training.clearance_tolerance)
         self.measure = jax.jit(sample_measures, static_argnames=("h", "k"))
-        # the most coordinates a fit frees: f0, the Q factors, the clearances, the model's effects and the largest
-        # candidate
+        # the most coordinates a fit frees: f0, the Q factors, the clearances, the support and the Stribeck drop
+        # where fitted, the model's effects and the largest candidate
         own = sum(len(p) for p in model.effects.params)
         self.tangents = (len(PARAMETER_NAMES) + len(Q_NAMES) + len(CLEARANCE_NAMES) + own
+                         + len(SUPPORT_NAMES) * self.fit_support + len(STRIBECK_NAMES) * self.fit_stribeck
                          + max([len(c.parameters) for c in candidates] or [0]))
 
     def flags(self, name: str = BASELINE) -> Stage1:
-        """A full fit's free coordinates: f0, the Q factors, the clearances, the model's own effects and, unless
-        `name` is the baseline's, that candidate's parameters."""
+        """A full fit's free coordinates: f0, the Q factors, the clearances, the support and the Stribeck drop where
+        the file's stage 1 fitted them, the model's own effects and, unless `name` is the baseline's, that
+        candidate's parameters."""
         fitted_effects = [*self.own_effects, *([name] if name != BASELINE else [])]
-        return stage1_flags(self.effects, True, fitted_effects=fitted_effects, fit_clearances=self.fit_clearances)
+        return stage1_flags(
+            self.effects, True, fitted_effects=fitted_effects, fit_clearances=self.fit_clearances,
+            fit_support=self.fit_support or None, fit_stribeck=self.fit_stribeck or None,
+        )
 
     def compile_ahead(self) -> None:
         """Queue the measures' and the standard errors' programs in `self.ahead`, with arguments of the
@@ -234,6 +253,16 @@ class _Problem:
         model, noise = stage1_model_and_noise(theta, self.base, self.noise, self.scales)
         self.ahead.wait(MEASURES_PROGRAM)
         return self.measure(model, noise, self.config.sample_period, batch, self.k)
+
+
+def refitted_constants(theta: Stage1) -> dict[str, float]:
+    """A fit's model constants: f0 and, where the fit moved them, the support's preload and span (N) and the
+    Stribeck drop and velocity (1, m/s)."""
+    values = dict(zip(PARAMETER_NAMES, np.exp(np.asarray(theta.log_f0)).tolist()))
+    for names, logs in ((SUPPORT_NAMES, theta.log_support), (STRIBECK_NAMES, theta.log_stribeck)):
+        if logs is not None:
+            values.update(zip(names, np.exp(np.asarray(logs)).tolist()))
+    return values
 
 
 def candidates_to_fit(frols_order: Sequence[str], count: int, shown_by_orbits: Sequence[str]) -> list[str]:
@@ -330,7 +359,7 @@ def _fit_candidates(
             values=values,
             sd=sd,
             units={k: v[1] for k, v in effect.parameters.items()} if effect else {},
-            nominal=dict(zip(PARAMETER_NAMES, np.exp(np.asarray(theta.log_f0)).tolist())),
+            nominal=refitted_constants(theta),
             fitted=errors_over(measures, fitted_rows),
             held_out=held_out_errors(measures, batch, phases),
             parameters=len(coordinates.names),
