@@ -283,18 +283,17 @@ def fit_candidates(
     stream=STDERR,
     starts: dict[str, dict[str, float]] | None = None,
 ) -> Selection:
-    """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q
-    factors and the model's own effects, from the calibrated values of `config` (the coefficient
-    file's or the YAML's), on the records' fitted samples; measure each on the held-out samples; where the
-    calibrated friction is above any bearing's or held at `training.friction_ceiling` (and
-    `settings.friction_grid`), fit each again from the pair of `calibrate.FRICTION_RESTART_VALUES` (at most
-    the ceiling) that lowers its loss most, keeping the lower loss; fit the baseline and the `settings.from_best`
-    next candidates again from the best one's constants, keeping the lower loss; where the step cap stopped the
-    baseline or one of the `settings.to_convergence` best, go on from there to convergence; fit the
-    `settings.per_bag` best (by the criterion) again bag by bag, their constants kept. The measures' and
-    standard errors' programs compile in a background thread while the baseline's fit compiles the loss's
-    (`Ahead`). A speed candidate starts where `starts` puts it (default: where its speed fits the records'
-    orbits, `core.orbit.candidate_starts`)."""
+    """Fit the baseline and each named candidate (those not already in the model) with ln f0, the Q factors, the
+    model's own effects and the support and Stribeck drop its stage 1 fitted (`_Problem.flags`), from the calibrated
+    values of `config` (the coefficient file's or the YAML's), on the records' fitted samples; measure each on the
+    held-out samples; where the calibrated friction is above any bearing's or held at `training.friction_ceiling`
+    (and `settings.friction_grid`), fit each again from the pair of `calibrate.FRICTION_RESTART_VALUES` (at most the
+    ceiling) that lowers its loss most, keeping the lower loss; fit the baseline and the `settings.from_best` next
+    candidates again from the best one's constants, keeping the lower loss; where the step cap stopped the baseline
+    or one of the `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best
+    (by the criterion) again bag by bag, their constants kept. The measures' and standard errors' programs compile
+    in a background thread while the baseline's fit compiles the loss's (`Ahead`). A speed candidate starts where
+    `starts` puts it (default: where its speed fits the records' orbits, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:
