@@ -159,7 +159,7 @@ class _Problem:
         # the axial support and the Stribeck drop the file's stage 1 fitted move with f0 too: held, they keep what
         # they took up of the missing effect (Table 1's loaded braked drops 9 + 11: stage 1 without the load puts
         # the support's knee at 37.7 kN, with it at 40.4 kN; held at 37.7, the load's fit ended 0.021 per sample
-        # higher and 1.9 % smaller)
+        # higher and 2.3 % smaller)
         law = model.law
         self.fit_support, self.fit_stribeck = law.support_uncertain, law.stribeck_uncertain
         self.start = stage1_start(
