@@ -28,13 +28,16 @@ cross_coupled_stiffness, contact_exponent, viscous_friction, contact_angle_coupl
 effects sensor_gain_x/y/z (gain, 1) and sensor_offset_x/y/z (offset, m): the sensor reads
 gain * position + offset on that axis; the speed effect brake_decay (a braked rotor). Beside it,
 `RIG_TERMS`, which the user switches on and the workbench does not search for: the clocked force
-amb_release (the AMB's force decaying after the drop, its PD law the rig's `amb_*`).
+amb_release (the AMB's force decaying after the drop, its PD law the rig's `amb_*`; until it lets go it
+carries the weight and the other force effects' static part, `Effect.holds`).
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
 (default, unit, description)), optionally ``bounds`` (name -> (low, high)), for a
 measurement effect ``kind = "measurement"`` and for a clocked one ``clocked = True`` (it takes the time
-since the onset as a fourth argument), or is made by the `effect` decorator below.
+since the onset as a fourth argument; an AMB's force that also carries the other force effects' static part
+until it lets go ``holds = True`` as well, with that force (N) as a fifth), or is made by the `effect` decorator
+below.
 """
 from __future__ import annotations
 
@@ -56,6 +59,7 @@ EffectFunction = Callable[[Array, Mapping[str, Array], object], Array]
 ENTRY_POINT_GROUP = "touchdown_ros.effects"
 FORCE, MEASUREMENT, SPEED = "force", "measurement", "speed"
 KINDS = (FORCE, MEASUREMENT, SPEED)
+HOLD_ANGLES = 4  # unbalance angles the static part of a force is averaged over (`Effects.static_force`)
 
 
 @dataclass(frozen=True)
@@ -75,10 +79,15 @@ class Effect:
     bounds: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
     contact: bool = False  # a force through the bearing's contact (a contact angle): part of the contact force
     clocked: bool = False  # a function of the time since the drop onset too: function(xi, params, rig, t)
+    # an AMB's force: until it lets go it also carries the other force effects' static part, as its integral action
+    # did in levitation: function(xi, params, rig, t, held), held (3,) N (`Effects.static_force`); clocked
+    holds: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"effect {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.holds and not (self.kind == FORCE and self.clocked and not self.contact):
+            raise ValueError(f"effect {self.name!r}: only a clocked force off the contact (an AMB's) holds loads")
         if self.contact and self.kind != FORCE:
             raise ValueError(f"effect {self.name!r}: only a force acts through the contact, not a {self.kind} effect")
         if self.contact and self.clocked:
@@ -92,8 +101,13 @@ class Effect:
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
 
-    def __call__(self, xi: Array, params: Mapping[str, Array], rig, t: Array | float = 0.0) -> Array:
-        """The effect at state xi and time t (s since the drop onset; only a clocked effect reads it)."""
+    def __call__(
+        self, xi: Array, params: Mapping[str, Array], rig, t: Array | float = 0.0, held: Array | None = None
+    ) -> Array:
+        """The effect at state xi and time t (s since the drop onset; only a clocked effect reads it); `held`
+        (3,) N: the static force an effect that `holds` carries beside the weight (none if not given)."""
+        if self.holds:
+            return self.function(xi, params, rig, t, jnp.zeros(3, xi.dtype) if held is None else held)
         return self.function(xi, params, rig, t) if self.clocked else self.function(xi, params, rig)
 
 
@@ -105,16 +119,18 @@ def effect(
     bounds: Mapping[str, tuple[float, float]] | None = None,
     contact: bool = False,
     clocked: bool = False,
+    holds: bool = False,
 ):
     """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `contact`: a
     force through the bearing's contact, published as part of the contact force; `clocked`: the function
-    takes the time since the drop onset (s) as a fourth argument."""
+    takes the time since the drop onset (s) as a fourth argument; `holds`: an AMB's clocked force that also
+    carries the other force effects' static part (a fifth argument, `Effect.holds`)."""
 
     def wrap(function: EffectFunction) -> Effect:
         text = description or (function.__doc__ or "")
         return Effect(
             name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact,
-            clocked=clocked,
+            clocked=clocked, holds=holds,
         )
 
     return wrap
@@ -198,10 +214,29 @@ class Effects:
 
     def _sum(self, kind: str, xi: Array, rig, contact: bool | None = None) -> Array:
         total = jnp.zeros(3, dtype=xi.dtype)
+        held = self.static_force(xi, rig) if kind == FORCE and contact is not True and self.holds else None
         for e, p, gate in zip(self.effects, self.params, self.gates):
             if e.kind == kind and contact in (None, e.contact):
-                total = total + gate * jnp.asarray(e(xi, p, rig, self.time), dtype=xi.dtype)
+                total = total + gate * jnp.asarray(e(xi, p, rig, self.time, held), dtype=xi.dtype)
         return total
+
+    @property
+    def holds(self) -> bool:
+        """Whether an effect that holds the others' static force (an AMB's) is among them (static)."""
+        return any(e.holds for e in self.effects)
+
+    def static_force(self, xi: Array, rig) -> Array:
+        """(3,) N: the force effects' static part, off the contact, but for those that hold: their mean at the
+        bearing's centre at rest over HOLD_ANGLES equally spaced unbalance angles (a once- or twice-per-revolution
+        force averages out). What an AMB's integral action carried in levitation (`Effect.holds`)."""
+        rest = xi.at[jnp.array([X, Y, Z, XDOT, YDOT, ZDOT])].set(0.0)
+        total = jnp.zeros(3, dtype=xi.dtype)
+        for k in range(HOLD_ANGLES):
+            at = rest.at[THETA].set(2.0 * math.pi * k / HOLD_ANGLES)
+            for e, p, gate in zip(self.effects, self.params, self.gates):
+                if e.kind == FORCE and not e.contact and not e.holds:
+                    total = total + gate * jnp.asarray(e(at, p, rig, self.time), dtype=xi.dtype)
+        return total / HOLD_ANGLES
 
     def force(self, xi: Array, rig, contact: bool | None = None) -> Array:
         """Sum of the active force effects (3,), N, each times its gate; `contact` True: only those through
@@ -300,19 +335,21 @@ def _brake_decay(xi, p, rig):
     return jnp.stack([w, xi[THETA] - 0.5 * p["rate"] * rig.speed * t * t])
 
 
-def _amb_release(xi, p, rig, t):
+def _amb_release(xi, p, rig, t, held):
     """The AMB's force as it lets go after the drop: its PD law about the bearing's centre (the rig's
     amb_stiffness, N/m, and amb_damping, N s/m), its cancelling of the unbalance force (the rig's
-    amb_unbalance_compensation of m e omega^2 along theta) and its support of the weight (m g), all
-    times share exp(-max(t - release, 0) / decay_time), t the time since the drop onset (s): held until
-    the release, which lies after the onset where the record starts in levitation (`drop_detection.lead`)."""
+    amb_unbalance_compensation of m e omega^2 along theta) and its support of the weight (m g) and of the
+    other force effects' static part `held` (N: a loader's thrust, a side load; what its integral action
+    carried in levitation), all times share exp(-max(t - release, 0) / decay_time), t the time since the drop
+    onset (s): held until the release, which lies after the onset where the record starts in levitation
+    (`drop_detection.lead`)."""
     gain = p["share"] * jnp.exp(-jnp.maximum(t - p["release"], 0.0) / p["decay_time"])
     k, c = rig.amb_stiffness, rig.amb_damping
     compensation = rig.amb_unbalance_compensation * rig.mass * rig.eccentricity * rig.speed**2
     return gain * jnp.stack([
-        -k * xi[X] - c * xi[XDOT] - compensation * jnp.cos(xi[THETA]),
-        -k * xi[Y] - c * xi[YDOT] - compensation * jnp.sin(xi[THETA]),
-        -k * xi[Z] - c * xi[ZDOT] + rig.mass * rig.gravity,
+        -k * xi[X] - c * xi[XDOT] - compensation * jnp.cos(xi[THETA]) - held[0],
+        -k * xi[Y] - c * xi[YDOT] - compensation * jnp.sin(xi[THETA]) - held[1],
+        -k * xi[Z] - c * xi[ZDOT] + rig.mass * rig.gravity - held[2],
     ])
 
 
@@ -417,6 +454,7 @@ RIG_TERMS: dict[str, Effect] = {
             _amb_release.__doc__,
             bounds={"share": (0.0, 2.0), "decay_time": (1.0e-6, 1.0), "release": (0.0, 0.1)},
             clocked=True,
+            holds=True,
         ),
     )
 }
@@ -451,7 +489,7 @@ def _lookup(spec: str) -> Effect:
             return Effect(
                 attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
                 bounds=dict(getattr(obj, "bounds", {})), contact=bool(getattr(obj, "contact", False)),
-                clocked=bool(getattr(obj, "clocked", False)),
+                clocked=bool(getattr(obj, "clocked", False)), holds=bool(getattr(obj, "holds", False)),
             )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
