@@ -229,10 +229,9 @@ class Effects:
         """(3,) N: the force effects' static part, off the contact, but for those that hold: their mean at the
         bearing's centre at rest over HOLD_ANGLES equally spaced unbalance angles (a once- or twice-per-revolution
         force averages out). What an AMB's integral action carried in levitation (`Effect.holds`)."""
-        rest = xi.at[jnp.array([X, Y, Z, XDOT, YDOT, ZDOT])].set(0.0)
         total = jnp.zeros(3, dtype=xi.dtype)
-        for k in range(HOLD_ANGLES):
-            at = rest.at[THETA].set(2.0 * math.pi * k / HOLD_ANGLES)
+        for k in range(HOLD_ANGLES):  # states built anew, not from xi: no derivative along xi to carry
+            at = jnp.zeros(xi.shape, xi.dtype).at[THETA].set(2.0 * math.pi * k / HOLD_ANGLES)
             for e, p, gate in zip(self.effects, self.params, self.gates):
                 if e.kind == FORCE and not e.contact and not e.holds:
                     total = total + gate * jnp.asarray(e(at, p, rig, self.time), dtype=xi.dtype)
