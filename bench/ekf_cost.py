@@ -24,7 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from touchdown_ros.cli import parameter_overrides
 from touchdown_ros.core.dynamics import rk4_step
+from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.ekf import Belief, ekf, ekf_step
 from touchdown_ros.core.streaming import chunk_buffer, flat_belief, make_chunk_filter
 from touchdown_ros.core.xla import LIBRARY_DOT_OPTIONS, SMALL_LOOP_OPTION, with_options, with_small_loop_flag
@@ -100,14 +102,16 @@ def jax_rows(model, noise, h, etas, initial, repeats, unrolls) -> dict[str, floa
     return rows
 
 
-def setup(samples: int, friction: str = "paper"):
-    config = load_config(overrides={"contact.friction": friction})
+def setup(samples: int, friction: str = "paper", params: list[str] | None = None):
+    """The filter's inputs; `params` (NAME:=VALUE) change the filtered model, e.g. switch on effects: the record is
+    the paper's model's touchdown either way."""
+    config = load_config(overrides={"contact.friction": friction, **parameter_overrides(params or [])})
     rng = np.random.default_rng(1)
     zeros = Coefficients.zeros(config.kernel)
     coeffs = Coefficients(0.1 * rng.standard_normal(zeros.alpha_R.shape),
                           0.1 * rng.standard_normal(zeros.alpha_Z.shape))
     model, noise, h = config.model(coeffs), config.noise, config.sample_period
-    etas = make_data(model, h, samples)
+    etas = make_data(model._replace(effects=Effects()), h, samples)
     initial = Belief(jnp.asarray(np.concatenate([etas[0], np.zeros(len(noise.initial) - 3)])), jnp.diag(noise.initial))
     return model, noise, h, etas, initial
 
@@ -119,15 +123,18 @@ def main() -> None:
     parser.add_argument("--baseline-samples", type=int, default=300, help="filterpy is slow: time it on fewer samples")
     parser.add_argument("--unroll", type=int, nargs="*", default=[2, 4, 8], help="lax.scan unroll factors to time")
     parser.add_argument("--friction", default="paper", help="contact.friction (spinning_ring: an eighth state)")
+    parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a rig parameter override of the filtered model (e.g. effects.active:=[amb_release])")
     parser.add_argument("--jax-only", action="store_true", help="print the JAX rows as JSON (for the child processes)")
     args = parser.parse_args()
 
-    model, noise, h, etas, initial = setup(args.samples, args.friction)
+    model, noise, h, etas, initial = setup(args.samples, args.friction, args.param)
     if args.jax_only:
         print(json.dumps(jax_rows(model, noise, h, etas, initial, args.repeats, args.unroll)))
         return
     child = [sys.executable, __file__, "--jax-only", "--samples", str(args.samples), "--repeats", str(args.repeats),
-             "--friction", args.friction, "--unroll", *map(str, args.unroll)]
+             "--friction", args.friction, "--unroll", *map(str, args.unroll),
+             *(a for p in args.param for a in ("-p", p))]
     # importing touchdown_ros.core sets each option unless XLA_FLAGS already names it
     library_dots = " --xla_cpu_experimental_ynn_fusion_type=individual_dot"
     flags = {
@@ -145,10 +152,11 @@ def main() -> None:
     def baseline():
         filterpy_innovations(model, noise, h, etas[: args.baseline_samples], initial.mean, initial.cov)
 
-    # the numpy baseline is written for the paper's seven states
-    paper_state = model.law.state_size == 7
+    # the numpy baseline is written for the paper's seven states and model
+    paper_state = model.law.state_size == 7 and not model.effects
     base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples if paper_state else float("nan")
-    print(f"EKF cost per sample ({args.samples} samples, friction {args.friction}, median of {args.repeats}; "
+    effects = f", effects {', '.join(model.effects.names)}" if model.effects else ""
+    print(f"EKF cost per sample ({args.samples} samples, friction {args.friction}{effects}, median of {args.repeats}; "
           f"jax {jax.__version__}; load average {os.getloadavg()[0]:.1f}):")
     print("| implementation | us per sample, XLA default | small-loop option | small loops + inline dots | "
           "speed-up vs filterpy (best) |")
