@@ -153,8 +153,8 @@ def main() -> None:
         filterpy_innovations(model, noise, h, etas[: args.baseline_samples], initial.mean, initial.cov)
 
     # the numpy baseline is written for the paper's seven states and model
-    paper_state = model.law.state_size == 7 and not model.effects
-    base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples if paper_state else float("nan")
+    paper_model = model.law.state_size == 7 and not model.effects
+    base = median_time(baseline, max(3, args.repeats // 2)) / args.baseline_samples if paper_model else float("nan")
     effects = f", effects {', '.join(model.effects.names)}" if model.effects else ""
     print(f"EKF cost per sample ({args.samples} samples, friction {args.friction}{effects}, median of {args.repeats}; "
           f"jax {jax.__version__}; load average {os.getloadavg()[0]:.1f}):")
@@ -163,9 +163,9 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|")
     for name in rows["default"]:
         times = [rows[setting][name] for setting in flags]
-        speed_up = f"{base / min(times):.0f}x" if paper_state else "-"
+        speed_up = f"{base / min(times):.0f}x" if paper_model else "-"
         print(f"| {name} | " + " | ".join(f"{t * 1e6:.1f}" for t in times) + f" | {speed_up} |")
-    if paper_state:
+    if paper_model:
         print(f"| filterpy EKF, numpy model, FD Jacobian | {base * 1e6:.1f} | - | - | 1x |")
 
 

@@ -345,14 +345,6 @@ def test_amb_release_is_the_rigs_pd_law_and_unbalance_compensation_and_the_filte
         np.testing.assert_allclose(out.prior.mean[k + 1], state, rtol=1e-10, atol=1e-16)
 
 
-def _user_once_per_rev(xi, p, rig):
-    """A user-written once-per-revolution axial thrust, N."""
-    return jnp.stack([0.0 * xi[2], 0.0 * xi[2], p["amplitude"] * jnp.cos(xi[3])])
-
-
-_user_once_per_rev.parameters = {"amplitude": (500.0, "N", "thrust's amplitude")}
-
-
 def test_amb_release_holds_the_static_loads_until_it_lets_go_and_not_a_once_per_revolution_force():
     """The AMB's integral action carried the loads in levitation: with an axial and a side load switched on, the
     rotor at rest at the centre feels nothing more than without them until the release, and the loads' whole
@@ -361,11 +353,11 @@ def test_amb_release_holds_the_static_loads_until_it_lets_go_and_not_a_once_per_
 
     base = load_config().model()
     amb = ({"share": 1.0, "decay_time": 1.0e-3, "release": 2.0e-3},)
-    loads = ({"force": 2000.0}, {"force_x": 300.0, "force_y": -150.0}, {"amplitude": 500.0})
+    loads = ({"force": 2000.0}, {"force_x": 300.0, "force_y": -150.0}, {"F_a": 500.0})
     alone = base._replace(effects=fx.Effects((fx.resolve("amb_release"),), amb))
     loaded = base._replace(effects=fx.Effects(
         (fx.resolve("amb_release"), fx.resolve("axial_load"), fx.resolve("radial_load"),
-         fx.resolve(f"{__name__}:_user_once_per_rev")), amb + loads))
+         fx.resolve(f"{__name__}:_user_force")), amb + loads))
     xi = jnp.zeros(base.law.state_size).at[3].set(0.7)
     thrust = np.array([0.0, 0.0, 500.0 * np.cos(0.7)])
     for t, kept in ((0.0, 1.0), (2.0e-3, 1.0), (3.0e-3, np.exp(-1.0)), (40.0e-3, 0.0)):

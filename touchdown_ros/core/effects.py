@@ -212,30 +212,25 @@ class Effects:
         """Whether an effect of `kind` is among them (static: decides what is traced)."""
         return any(e.kind == kind for e in self.effects)
 
-    def _sum(self, kind: str, xi: Array, rig, contact: bool | None = None) -> Array:
+    def _sum(
+        self, kind: str, xi: Array, rig, contact: bool | None = None, holding: bool | None = None
+    ) -> Array:
+        """`contact`, `holding`: only the effects with that `Effect.contact`, `Effect.holds` (None: any)."""
         total = jnp.zeros(3, dtype=xi.dtype)
-        held = self.static_force(xi, rig) if kind == FORCE and contact is not True and self.holds else None
         for e, p, gate in zip(self.effects, self.params, self.gates):
-            if e.kind == kind and contact in (None, e.contact):
+            if e.kind == kind and contact in (None, e.contact) and holding in (None, e.holds):
+                held = self.static_force(xi, rig) if e.holds else None
                 total = total + gate * jnp.asarray(e(xi, p, rig, self.time, held), dtype=xi.dtype)
         return total
-
-    @property
-    def holds(self) -> bool:
-        """Whether an effect that holds the others' static force (an AMB's) is among them (static)."""
-        return any(e.holds for e in self.effects)
 
     def static_force(self, xi: Array, rig) -> Array:
         """(3,) N: the force effects' static part, off the contact, but for those that hold: their mean at the
         bearing's centre at rest over HOLD_ANGLES equally spaced unbalance angles (a once- or twice-per-revolution
         force averages out). What an AMB's integral action carried in levitation (`Effect.holds`)."""
-        total = jnp.zeros(3, dtype=xi.dtype)
-        for k in range(HOLD_ANGLES):  # states built anew, not from xi: no derivative along xi to carry
-            at = jnp.zeros(xi.shape, xi.dtype).at[THETA].set(2.0 * math.pi * k / HOLD_ANGLES)
-            for e, p, gate in zip(self.effects, self.params, self.gates):
-                if e.kind == FORCE and not e.contact and not e.holds:
-                    total = total + gate * jnp.asarray(e(at, p, rig, self.time), dtype=xi.dtype)
-        return total / HOLD_ANGLES
+        rest = jnp.zeros(xi.shape, xi.dtype)  # built anew, not from xi: no derivative along xi to carry
+        angles = (2.0 * math.pi * k / HOLD_ANGLES for k in range(HOLD_ANGLES))
+        at_rest = (rest.at[THETA].set(angle) for angle in angles)
+        return sum(self._sum(FORCE, state, rig, contact=False, holding=False) for state in at_rest) / HOLD_ANGLES
 
     def force(self, xi: Array, rig, contact: bool | None = None) -> Array:
         """Sum of the active force effects (3,), N, each times its gate; `contact` True: only those through
