@@ -129,3 +129,35 @@ def test_report_of_a_file_without_a_training_record_says_so(tmp_path):
     assert main(["report", str(coeffs), "-o", str(out)]) == 0
     assert "No stage-1 record in this file" in (out / "training.md").read_text()
     assert sorted(p.name for p in (out / "figures").iterdir()) == ["parameter_maps.png"]
+
+
+def test_report_says_where_the_learned_functions_are_lowest_and_highest(tmp_path):
+    """One coefficient of k_R at the kernel's corner centre (40 um, +100 mm/s): k_R reaches 1 + alpha there, and
+    is nearly the constant at the opposite corner; the other five are the constants. Zero coefficients: said so."""
+    import numpy as np
+
+    from touchdown_ros.core.types import Coefficients
+    from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
+    from touchdown_ros.io.config import load_config
+
+    config = load_config()
+    kernel = config.kernel
+    T, scale = np.asarray(kernel.T_R), np.asarray(kernel.scale_R)
+    corner = int(np.flatnonzero((T[:, 0] == T[:, 0].max()) & (T[:, 1] == T[:, 1].max()))[0])
+    zeros = Coefficients.zeros(kernel)
+    alpha_R = np.array(zeros.alpha_R)
+    alpha_R[0, corner] = 0.3
+    out = tmp_path / "report"
+    coeffs = save_coefficients(tmp_path / "c.yaml", zeros._replace(alpha_R=alpha_R), config, TrainingRecord())
+    assert main(["report", str(coeffs), "-o", str(out)]) == 0
+    text = (out / "training.md").read_text()
+    top = f"{T[corner, 0] * scale[0] * 1e6:.3g} / {T[corner, 1] * scale[1] * 1e3:+.3g}"
+    bottom = f"{0.0:.3g} / {T[:, 1].min() * scale[1] * 1e3:+.3g}"
+    assert f"| k_R | 1 | {bottom} | 1.3 | {top} |" in text, text
+    for name in ("c_R", "mu", "k_Z", "c_Z", "k_ZR"):
+        assert f"| {name} | 1 | - | 1 | - |" in text
+
+    unmoved = save_coefficients(tmp_path / "zero.yaml", zeros, config, TrainingRecord())
+    assert main(["report", str(unmoved), "-o", str(tmp_path / "zero")]) == 0
+    said = (tmp_path / "zero" / "training.md").read_text()
+    assert "The learned functions are the calibrated constants everywhere" in said and "| k_R |" not in said

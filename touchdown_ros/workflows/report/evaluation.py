@@ -4,7 +4,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -121,29 +121,40 @@ def plot_evaluation(comparisons, config, coeffs, out: Path, example: int = 0) ->
     return written
 
 
-def plot_parameter_maps(config: Config, coeffs: Coefficients, path: Path) -> Path:
-    """The six PKBKR parameters over deformation and velocity, relative to their calibrated constants, where the
-    kernel centres reach (`config`: the rig as the coefficient file calibrated it)."""
+class ParameterMap(NamedTuple):
+    """One PKBKR parameter over a grid of deformation (m) and velocity (m/s), relative to its calibrated constant."""
+
+    name: str
+    deformation: np.ndarray
+    velocity: np.ndarray
+    relative: np.ndarray
+
+
+def parameter_maps(config: Config, coeffs: Coefficients, points: int = 60) -> list[ParameterMap]:
+    """The six PKBKR parameters (k_R, c_R, mu, k_Z, c_Z, k_ZR) on a points x points grid from zero deformation to
+    the kernel's largest centre and over its centres' velocities, each over its calibrated constant (`config`: the
+    rig as the coefficient file calibrated it)."""
     kernel, nominal = config.kernel, config.nominal
 
     def span(T, scale):
-        deformation = np.linspace(0.0, float(np.max(T[:, 0])) * scale[0], 60)
-        velocity = np.linspace(float(np.min(T[:, 1])) * scale[1], float(np.max(T[:, 1])) * scale[1], 60)
+        deformation = np.linspace(0.0, float(np.max(T[:, 0])) * scale[0], points)
+        velocity = np.linspace(float(np.min(T[:, 1])) * scale[1], float(np.max(T[:, 1])) * scale[1], points)
         return np.meshgrid(deformation, velocity, indexing="ij")
 
     D_R, V_R = span(np.asarray(kernel.T_R), np.asarray(kernel.scale_R))
     D_Z, V_Z = span(np.asarray(kernel.T_Z), np.asarray(kernel.scale_Z))
-    maps = [
-        (name, D_R, V_R, value)
-        for name, value in zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D_R, V_R))
-    ]
-    maps += [
-        (name, D_Z, V_Z, value)
-        for name, value in zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D_Z, V_Z))
-    ]
+    maps = [(name, D_R, V_R, value)
+            for name, value in zip(("k_R", "c_R", "mu"), radial_parameters(kernel, nominal, coeffs, D_R, V_R))]
+    maps += [(name, D_Z, V_Z, value)
+             for name, value in zip(("k_Z", "c_Z", "k_ZR"), axial_parameters(kernel, nominal, coeffs, D_Z, V_Z))]
+    return [ParameterMap(name, D, V, np.asarray(value) / getattr(nominal, name)) for name, D, V, value in maps]
+
+
+def plot_parameter_maps(config: Config, coeffs: Coefficients, path: Path) -> Path:
+    """The six PKBKR parameters over deformation and velocity, relative to their calibrated constants, where the
+    kernel centres reach (`parameter_maps`)."""
     fig, axes = plt.subplots(2, 3, figsize=(12, 7))
-    for ax, (name, D, V, value) in zip(axes.ravel(), maps):
-        relative = np.asarray(value) / getattr(nominal, name)
+    for ax, (name, D, V, relative) in zip(axes.ravel(), parameter_maps(config, coeffs)):
         image = ax.pcolormesh(V, D * 1e6, relative, shading="auto", cmap="viridis")
         fig.colorbar(image, ax=ax, label=f"{name} / nominal")
         ax.set_title(f"{name}(deformation, velocity)")

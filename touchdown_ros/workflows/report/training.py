@@ -3,7 +3,8 @@
 training.md (the calibrated constants beside the guess with their standard errors, the contact laws
 screened, the lambda path, the noise and the NIS per bag, the notes) and figures/ (the constants'
 ratio to the guess with their 95 % intervals, the laws' criteria, the loss and held-out loss per
-step, the mean NIS per bag, the learned parameters' maps).
+step, the mean NIS per bag, the learned parameters' maps), with the learned functions' lowest and highest value
+over the constants and where each is reached.
 """
 from __future__ import annotations
 
@@ -14,15 +15,18 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.coefficients import CoefficientFile
 from touchdown_ros.io.config import Config
-from touchdown_ros.workflows.report.evaluation import plot_parameter_maps
+from touchdown_ros.workflows.report.evaluation import parameter_maps, plot_parameter_maps
 from touchdown_ros.workflows.report.plotting import plt, save
 
 #: The six contact constants f0 of stage 1, in the paper's order.
 CONSTANTS = ("k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR")
 #: Mean NIS per bag of a consistent filter: the measurement's size (x, y, z).
 CONSISTENT_NIS = 3.0
+#: A learned function within this of its constant everywhere counts as not moved by stage 2.
+UNMOVED = 1.0e-9
 #: What the report writes in its output directory.
 REPORT_FILES = ("training.md", "figures")
 
@@ -85,6 +89,7 @@ def markdown(loaded: CoefficientFile, config: Config, source: Path, figures: Seq
     lines += _stage1_lines(extra.get("calibration") or {}, document)
     lines += ["", "## Stage 2: PKBKR", ""]
     lines += _stage2_lines(extra, training.regularisation)
+    lines += ["", *_learned_range_lines(config, loaded.coeffs)]
     lines += ["", "## Noise and consistency", ""]
     lines += _noise_lines(extra, config)
     lines += ["", "## Bags", ""]
@@ -165,6 +170,45 @@ def _stage2_lines(extra: Mapping[str, Any], regularisation: float) -> list[str]:
     if notes:
         lines += ["", *[f"- {note}" for note in notes]]
     return lines
+
+
+def learned_range_rows(config: Config, coeffs: Coefficients) -> list[dict[str, Any]]:
+    """Per PKBKR parameter (`parameter_maps`'s grid): its lowest and highest value over the calibrated constant
+    and the deformation (um) and velocity (mm/s) where each is reached."""
+    rows = []
+    for name, D, V, relative in parameter_maps(config, coeffs):
+        row: dict[str, Any] = {"name": name}
+        for end, index in (("lowest", np.argmin(relative)), ("highest", np.argmax(relative))):
+            at = np.unravel_index(index, relative.shape)
+            row[end] = float(relative[at])
+            row[f"{end}_at"] = (float(D[at]) * 1e6, float(V[at]) * 1e3)
+        rows.append(row)
+    return rows
+
+
+def _learned_range_lines(config: Config, coeffs: Coefficients) -> list[str]:
+    """The learned functions' range over the kernel's span, or that stage 2 left them at the constants."""
+    rows = learned_range_rows(config, coeffs)
+    if all(abs(r["lowest"] - 1.0) < UNMOVED and abs(r["highest"] - 1.0) < UNMOVED for r in rows):
+        return ["The learned functions are the calibrated constants everywhere (stage 2 did not move them)."]
+    lines = ["The learned functions over the kernel's span, times the calibrated constant (the deformation from 0 "
+             "to the largest centre, the velocity over the centres'; `figures/parameter_maps.png`):", ""]
+    lines += _table(
+        ["parameter", "lowest", "at um / mm/s", "highest", "at um / mm/s"],
+        [[r["name"], r["lowest"], _at(r, "lowest"), r["highest"], _at(r, "highest")] for r in rows],
+    )
+    lines += ["", "A stiffness higher while a contact closes (velocity > 0) than while it opens at the same "
+              "deformation is a hysteresis loop: it dissipates as damping does and raises the force while an "
+              "impact closes, where few samples check it (docs/calibration.md, \"What the excess buys\")."]
+    return lines
+
+
+def _at(row: Mapping[str, Any], end: str) -> str:
+    """Where a `learned_range_rows` row reaches its `end` (um / mm/s); "-" for a function stage 2 left unmoved."""
+    if abs(row["lowest"] - 1.0) < UNMOVED and abs(row["highest"] - 1.0) < UNMOVED:
+        return "-"
+    deformation, velocity = row[f"{end}_at"]
+    return f"{deformation:.3g} / {velocity:+.3g}"
 
 
 def _noise_lines(extra: Mapping[str, Any], config: Config) -> list[str]:
