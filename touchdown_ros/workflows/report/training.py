@@ -189,7 +189,7 @@ def learned_range_rows(config: Config, coeffs: Coefficients) -> list[dict[str, A
 def _learned_range_lines(config: Config, coeffs: Coefficients) -> list[str]:
     """The learned functions' range over the kernel's span, or that stage 2 left them at the constants."""
     rows = learned_range_rows(config, coeffs)
-    if all(abs(r["lowest"] - 1.0) < UNMOVED and abs(r["highest"] - 1.0) < UNMOVED for r in rows):
+    if all(map(_unmoved, rows)):
         return ["The learned functions are the calibrated constants everywhere (stage 2 did not move them)."]
     lines = ["The learned functions over the kernel's span, times the calibrated constant (the deformation from 0 "
              "to the largest centre, the velocity over the centres'; `figures/parameter_maps.png`):", ""]
@@ -203,9 +203,13 @@ def _learned_range_lines(config: Config, coeffs: Coefficients) -> list[str]:
     return lines
 
 
+def _unmoved(row: Mapping[str, Any]) -> bool:
+    return abs(row["lowest"] - 1.0) < UNMOVED and abs(row["highest"] - 1.0) < UNMOVED
+
+
 def _at(row: Mapping[str, Any], end: str) -> str:
     """Where a `learned_range_rows` row reaches its `end` (um / mm/s); "-" for a function stage 2 left unmoved."""
-    if abs(row["lowest"] - 1.0) < UNMOVED and abs(row["highest"] - 1.0) < UNMOVED:
+    if _unmoved(row):
         return "-"
     deformation, velocity = row[f"{end}_at"]
     return f"{deformation:.3g} / {velocity:+.3g}"
