@@ -197,9 +197,10 @@ def _learned_range_lines(config: Config, coeffs: Coefficients) -> list[str]:
         ["parameter", "lowest", "at um / mm/s", "highest", "at um / mm/s"],
         [[r["name"], r["lowest"], _at(r, "lowest"), r["highest"], _at(r, "highest")] for r in rows],
     )
-    lines += ["", "A stiffness higher while a contact closes (velocity > 0) than while it opens at the same "
-              "deformation is a hysteresis loop: it dissipates as damping does and raises the force while an "
-              "impact closes, where few samples check it (docs/calibration.md, \"What the excess buys\")."]
+    lines += ["", "A stiffness higher while a contact closes than while it opens at the same deformation (closing: the "
+              "radial velocity above 0, the axial one, zdot, below 0) is a hysteresis loop: it dissipates as damping "
+              "does and raises the force while an impact closes, where few samples check it (docs/calibration.md, "
+              "\"What the excess buys\")."]
     return lines
 
 
