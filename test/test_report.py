@@ -132,15 +132,16 @@ def test_report_of_a_file_without_a_training_record_says_so(tmp_path):
 
 
 def test_report_says_where_the_learned_functions_are_lowest_and_highest(tmp_path):
-    """One coefficient of k_R at the kernel's corner centre (40 um, +100 mm/s): k_R reaches 1 + alpha there, and
-    is nearly the constant at the opposite corner; the other five are the constants. Zero coefficients: said so."""
+    """One coefficient of k_R at the kernel's corner centre (80 um, +100 mm/s): k_R reaches 1 + alpha there and is the
+    constant to 1e-18 at the opposite corner, eight widths away (a function moved at one end only is still shown
+    moved, with both places); the other five are the constants. Zero coefficients: said so."""
     import numpy as np
 
     from touchdown_ros.core.types import Coefficients
     from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
     from touchdown_ros.io.config import load_config
 
-    config = load_config()
+    config = load_config(overrides={"kernel.radial_deformation_centres": [float(i) for i in range(9)]})
     kernel = config.kernel
     T, scale = np.asarray(kernel.T_R), np.asarray(kernel.scale_R)
     corner = int(np.flatnonzero((T[:, 0] == T[:, 0].max()) & (T[:, 1] == T[:, 1].max()))[0])
