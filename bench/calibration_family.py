@@ -9,7 +9,7 @@ rig's contact guess, and estimate the other bags (smoothed) with
 - stage 1+2: the calibrated constants with the PKBKR functions of the coefficient file,
 against the simulator's truth.
 
-    .venv/bin/python bench/calibration_family.py [--variants a,b] [--train 3] [--test 2]
+    .venv/bin/python bench/calibration_family.py [--variants a,b] [--drawn N [--draw-seed S]] [--train 3] [--test 2]
         [--loss nll|one_step] [--out DIR] [-p contact.friction:=spinning_ring ...]
         [--truth simulator.ceramic.ring_inertia:=9.0e-3 --truth rig.radial_clearance:=0.26e-3 ...]
 
@@ -39,7 +39,7 @@ from touchdown_ros.core.metrics import relative_peak_error
 from touchdown_ros.io.config import load_config
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.workflows.offline import estimate_bag, estimator_for
-from touchdown_ros.sim.family import VARIANTS, variant, write_variant_bags
+from touchdown_ros.sim.family import VARIANTS, drawn_variants, variant, write_variant_bags
 from touchdown_ros.workflows.train import train
 
 Z95 = 1.959964
@@ -205,7 +205,10 @@ def anatomy_table(results: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS))
+    parser.add_argument("--variants", help="rigs by name, comma-separated (default: the family, unless --drawn)")
+    parser.add_argument("--drawn", type=int, default=0, metavar="N",
+                        help="also rigs drawn_SEED_1..N, drawn at random from the family's ranges (sim.family)")
+    parser.add_argument("--draw-seed", type=int, default=1, metavar="SEED", help="the drawn rigs' seed")
     parser.add_argument("--train", type=int, default=3, help="bags to train on per rig")
     parser.add_argument("--test", type=int, default=2, help="held-out bags per rig")
     parser.add_argument("--loss", default="nll", choices=("nll", "one_step"))
@@ -224,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--truth takes simulator.* and rig.* names only (the estimator's settings are -p)")
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
-    for name in args.variants.split(","):
+    names = args.variants.split(",") if args.variants else [] if args.drawn else [v.name for v in VARIANTS]
+    names += [v.name for v in drawn_variants(args.draw_seed, args.drawn)]
+    for name in names:
         log = sys.stderr if args.verbose else io.StringIO()
         print(
             f"[{name}] simulating, training on {args.train} bags, estimating {args.test} ...",

@@ -32,14 +32,17 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Mapping, Sequence
 
+import math
+import re
+
 import numpy as np
 import yaml
 
 from touchdown_ros.io.config import Config, ConfigError, load_config
 from touchdown_ros.sim.bags import write_drop_bag
-from touchdown_ros.sim.params import BALLS, simulator_parameters
+from touchdown_ros.sim.params import BALLS, required_substeps, simulator_parameters, truth_constants
 from touchdown_ros.sim.record import DropCondition, DropRecord
-from touchdown_ros.sim.simulator import simulate_drop
+from touchdown_ros.sim.simulator import RPM, simulate_drop
 
 #: Sections a variant may change: the truth, the sensor and the rig the user knows.
 VARIANT_SECTIONS = ("rig.", "sensor.", "simulator.")
@@ -151,16 +154,114 @@ VARIANTS: tuple[Variant, ...] = (
 REFERENCE = Variant("reference", "config/reference_rig.yaml as it is", {})
 
 
+# --- Rigs drawn at random ------------------------------------------------------------------------
+
+#: What `drawn_variant` draws a rig's truth from: the ranges of the family's brief, every quantity at once.
+#: (low, high) are drawn uniformly, or log-uniformly where the name says so; the choices with equal odds.
+DRAWN_RANGES: Mapping[str, Any] = MappingProxyType({
+    "stiffness_factor_log": (0.2, 5.0),  # radial K over the reference ball's (matched at 45 um for n != 1.5)
+    "axial_over_radial_log": (0.5, 2.0),  # the face's K over the bore's (the product kept within x0.2-x5)
+    "contact_exponent": (1.5, 10.0 / 9.0, 1.0),  # ball, roller, linear spring
+    "damping_law": ("hunt_crossley", "linear"),
+    "damping_factor_log": (1.0 / 3.0, 3.0),  # Hunt-Crossley D or Kelvin-Voigt C over the reference's
+    "friction_kinetic": (0.05, 0.30),  # mu_k
+    "static_over_kinetic": (1.1, 1.4),  # mu_s / mu_k
+    "mass_factor": (0.7, 1.3),  # the rotor's mass over the reference's 240 kg (the user knows it)
+    "noise_rms": (1.0e-6, 5.0e-6),  # m, the sensor's noise per axis
+})
+#: Name of a drawn rig: drawn_<seed>_<index>.
+DRAWN_NAME = re.compile(r"drawn_(\d+)_(\d+)")
+#: Margin on the substeps a drawn rig's nominal truth needs (the drops vary the constants by a few %).
+_SUBSTEP_MARGIN = 1.25
+
+
+def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
+    return float(np.exp(rng.uniform(np.log(low), np.log(high))))
+
+
+def _significant(value: float, digits: int = 3) -> float:
+    return float(f"{value:.{digits}g}")
+
+
+def _substeps(overrides: Mapping[str, Any]) -> int:
+    """RK4 substeps per sample for the rig's nominal truth at 5000 rpm, with margin, in steps of 50, at least 100."""
+    config = load_config(overrides={**overrides, "simulator.variation": 0.0})
+    truth = truth_constants(
+        config, simulator_parameters(config), "ceramic", False, False, 0.0, np.random.default_rng(0)
+    )
+    needed = _SUBSTEP_MARGIN * required_substeps(truth, 5000.0 * RPM, config.sample_period)
+    return max(100, 50 * math.ceil(needed / 50))
+
+
+def drawn_variant(seed: int, index: int) -> Variant:
+    """Rig `index` of the rigs drawn with `seed`: every quantity of `DRAWN_RANGES` drawn at once, so the rig
+    differs from the reference (and from the named family, which changes one or two things) in all of them.
+    Nobody has looked at a drawn rig's constants before it is used: it is the family's held-out rig."""
+    if seed < 0 or index < 1:
+        raise ValueError(f"a drawn rig needs seed >= 0 and index >= 1, got {seed} and {index}")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0x0D7A]))
+    r = DRAWN_RANGES
+    radial_factor = _log_uniform(rng, *r["stiffness_factor_log"])
+    low, high = r["stiffness_factor_log"]
+    axial_factor = float(np.clip(radial_factor * _log_uniform(rng, *r["axial_over_radial_log"]), low, high))
+    exponent = float(r["contact_exponent"][rng.integers(len(r["contact_exponent"]))])
+    law = str(r["damping_law"][rng.integers(len(r["damping_law"]))])
+    damping_factor = _log_uniform(rng, *r["damping_factor_log"])
+    mu_k = rng.uniform(*r["friction_kinetic"])
+    mu_s = mu_k * rng.uniform(*r["static_over_kinetic"])
+    mass = 240.0 * rng.uniform(*r["mass_factor"])
+    noise = rng.uniform(*r["noise_rms"])
+    stiffness = {axis: _significant(matched_stiffness(exponent, _REFERENCE_STIFFNESS * factor))
+                 for axis, factor in (("radial", radial_factor), ("axial", axial_factor))}
+    overrides: dict[str, Any] = {
+        "simulator.ceramic.contact_exponent": exponent,
+        "simulator.ceramic.radial_stiffness": stiffness["radial"],
+        "simulator.ceramic.axial_stiffness": stiffness["axial"],
+        "simulator.damping_law": law,
+        "simulator.ceramic.friction_kinetic": _significant(mu_k),
+        "simulator.ceramic.friction_static": _significant(mu_s),
+        "rig.mass": _significant(mass),
+        "sensor.noise_rms": _significant(noise),
+    }
+    if law == "linear":
+        overrides.update(_both("viscous_damping", _significant(5.0e4 * damping_factor)))
+        damping = f"Kelvin-Voigt C {overrides['simulator.ceramic.radial_viscous_damping']:.3g} N s/m"
+    else:
+        overrides["simulator.ceramic.radial_damping"] = _significant(20.0 * damping_factor)
+        overrides["simulator.ceramic.axial_damping"] = _significant(6.0 * damping_factor)
+        damping = (f"Hunt-Crossley D_R {overrides['simulator.ceramic.radial_damping']:.3g} s/m, "
+                   f"D_Z {overrides['simulator.ceramic.axial_damping']:.3g} s/m")
+    overrides["simulator.substeps"] = _substeps(overrides)
+    n = {1.5: "3/2", 10.0 / 9.0: "10/9", 1.0: "1"}[exponent]
+    description = (
+        f"drawn: K_R x{radial_factor:.2f}, K_Z x{axial_factor:.2f} (n = {n}), {damping}, mu_k {mu_k:.3f}, "
+        f"mu_s {mu_s:.3f}, mass {mass:.0f} kg, noise {1e6 * noise:.1f} um"
+    )
+    return Variant(f"drawn_{seed}_{index}", description, overrides)
+
+
+def drawn_variants(seed: int, count: int) -> tuple[Variant, ...]:
+    """Rigs 1..count drawn with `seed` (`drawn_variant`)."""
+    return tuple(drawn_variant(seed, index) for index in range(1, count + 1))
+
+
 def variant_names() -> tuple[str, ...]:
     return tuple(v.name for v in VARIANTS)
 
 
 def variant(name: str) -> Variant:
-    """The variant called `name`; an unknown name is refused with the list of names."""
+    """The variant called `name`, or the drawn rig `drawn_<seed>_<index>`; an unknown name is refused with the
+    list of names."""
     for v in VARIANTS:
         if v.name == name:
             return v
-    raise ValueError(f"no rig variant named {name!r}; the family is: {', '.join(variant_names())}")
+    drawn = DRAWN_NAME.fullmatch(name)
+    if drawn:
+        return drawn_variant(int(drawn[1]), int(drawn[2]))
+    raise ValueError(
+        f"no rig variant named {name!r}; the family is: {', '.join(variant_names())}, or a rig drawn at random: "
+        "drawn_<seed>_<index> (e.g. drawn_1_1)"
+    )
 
 
 def variant_config(v: Variant) -> Config:

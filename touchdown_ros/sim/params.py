@@ -289,17 +289,14 @@ def contact_rate(
     return half + math.sqrt(half * half + k / mass)
 
 
-def check_step_size(
-    params: SimulatorParameters, truth: Truth, speed: float, period: float, ball: str = "<ball>"
-) -> None:
-    """Refuse a substep too long for the stiffest mode of the drop (RK4 needs h * rate < 2.5).
+def stiffest_rates(truth: Truth, speed: float) -> dict[str, float]:
+    """1/s, the fastest rate of each stiff mode of a drop at `speed` rad/s: "ring", "radial", "axial".
 
-    Two candidates. The ring stuck to the rotor by friction:
+    The ring stuck to the rotor by friction:
     rate ~ mu_s F (R + r0)^2 / (v_reg J_ring) + mu_s F / (m v_reg) with F = 1.5 m r0 omega^2
     (synchronous whirl with margin). The bore and face contacts: `contact_rate` at the
     deformation an impact at `impact_speed_bound` reaches (a stiffer or more damped contact,
-    a higher exponent at a large deformation or a lighter rotor need more substeps).
-    `ball` (the experiment's ball) names the keys in the message.
+    a higher exponent at a large deformation or a lighter rotor are faster).
     """
     force = 1.5 * truth.mass * truth.radial_clearance * speed**2
     slip_gain = truth.friction_static * force / truth.regularisation_velocity
@@ -307,7 +304,7 @@ def check_step_size(
     ring_rate += slip_gain / truth.mass
     impact = impact_speed_bound(truth, speed)
     linear = truth.linear_damping > 0.5
-    rates = {
+    return {
         "ring": ring_rate,
         "radial": contact_rate(
             truth.radial_stiffness, truth.radial_exponent, truth.radial_damping, truth.radial_viscous_damping,
@@ -318,19 +315,34 @@ def check_step_size(
             linear, truth.mass, impact,
         ),
     }
+
+
+def required_substeps(truth: Truth, speed: float, period: float) -> int:
+    """The fewest RK4 substeps per sensor period (s) that keep h * rate within the limit for every
+    mode of `stiffest_rates`."""
+    return int(math.ceil(period * max(stiffest_rates(truth, speed).values()) / _RK4_LIMIT))
+
+
+def check_step_size(
+    params: SimulatorParameters, truth: Truth, speed: float, period: float, ball: str = "<ball>"
+) -> None:
+    """Refuse a substep too long for the stiffest mode of the drop (RK4 needs h * rate < 2.5;
+    the modes: `stiffest_rates`). `ball` (the experiment's ball) names the keys in the message."""
+    rates = stiffest_rates(truth, speed)
     stiffest = max(rates, key=rates.__getitem__)
     rate = rates[stiffest]
     h = period / params.substeps
     if h * rate <= _RK4_LIMIT:
         return
-    needed = int(math.ceil(period * rate / _RK4_LIMIT))
+    needed = required_substeps(truth, speed, period)
     head = f"parameter 'simulator.substeps' = {params.substeps} is too few for "
     if stiffest == "ring":
         raise ConfigError(
             head + f"these friction and ring constants (stiff ring-rotor stick: h * rate = {h * rate:.1f} > "
             f"{_RK4_LIMIT}); use at least {needed}, or raise 'simulator.regularisation_velocity' or the ring inertia"
         )
-    damping = "viscous_damping" if linear else "damping"
+    impact = impact_speed_bound(truth, speed)
+    damping = "viscous_damping" if truth.linear_damping > 0.5 else "damping"
     raise ConfigError(
         head + f"the {stiffest} contact of the {ball} ball (stiff contact at {impact:.2g} m/s impact: h * rate = "
         f"{h * rate:.1f} > {_RK4_LIMIT}); use at least {needed}, or lower 'simulator.{ball}.{stiffest}_stiffness', "
