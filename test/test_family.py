@@ -1,4 +1,5 @@
 """The rig family: the new contact options (exponent, Kelvin-Voigt law), the variants, their rig files and CLI."""
+import dataclasses
 from dataclasses import fields
 
 import jax
@@ -12,19 +13,22 @@ from touchdown_ros.io.config import ConfigError, config_from_parameters, load_co
 from touchdown_ros.sim import physics
 from touchdown_ros.sim.campaign import CAMPAIGN
 from touchdown_ros.sim.family import (
+    DRAWN_RANGES,
     REFERENCE,
     RIG_FILE,
     VARIANTS,
     NoTouchdownError,
     Variant,
+    drawn_variant,
+    drawn_variants,
     matched_stiffness,
     simulate_variant,
     variant,
     variant_config,
     write_rig_yaml,
 )
-from touchdown_ros.sim.params import simulator_parameters, truth_constants
-from touchdown_ros.sim.simulator import simulate_drop
+from touchdown_ros.sim.params import check_step_size, required_substeps, simulator_parameters, truth_constants
+from touchdown_ros.sim.simulator import RPM, simulate_drop
 
 CONFIG = load_config()
 NEW_KEYS = ("damping_law", "contact_exponent", "radial_viscous_damping", "axial_viscous_damping")
@@ -198,6 +202,68 @@ def test_every_variant_touches_down(v, reference_drop):
     # the same condition and seed on the reference rig gives another drop
     assert record.condition == CAMPAIGN[0] and record.seed == reference_drop.seed
     assert np.abs(record.contact_force - reference_drop.contact_force).max() > 100.0
+
+
+# --- Rigs drawn at random ----------------------------------------------------------------------
+
+
+def test_drawn_rigs_span_the_ranges_in_every_quantity_at_once():
+    rigs = drawn_variants(0, 40)
+    assert [v.name for v in rigs[:2]] == ["drawn_0_1", "drawn_0_2"] and len({v.name for v in rigs}) == 40
+    assert variant("drawn_0_7") == rigs[6] and drawn_variant(0, 7) == rigs[6]  # drawn again, the same rig
+    assert drawn_variant(1, 7) != rigs[6]  # another seed, another rig
+    ranges = DRAWN_RANGES
+    factors = []
+    for v in rigs:
+        o = v.overrides
+        n = o["simulator.ceramic.contact_exponent"]
+        assert n in ranges["contact_exponent"] and o["simulator.damping_law"] in ranges["damping_law"]
+        factor = o["simulator.ceramic.radial_stiffness"] / matched_stiffness(n)
+        axial = o["simulator.ceramic.axial_stiffness"] / matched_stiffness(n)
+        assert 0.199 <= min(factor, axial) and max(factor, axial) <= 5.01, v.name
+        factors.append(factor)
+        mu_k, mu_s = o["simulator.ceramic.friction_kinetic"], o["simulator.ceramic.friction_static"]
+        assert 0.05 <= mu_k <= 0.30 and 1.09 * mu_k <= mu_s <= 1.41 * mu_k
+        assert 0.7 * 240.0 <= o["rig.mass"] <= 1.3 * 240.0 and 1.0e-6 <= o["sensor.noise_rms"] <= 5.0e-6
+        config = variant_config(v)
+        assert config.nominal == CONFIG.nominal, v.name  # the estimator's guess stays the reference's
+        np.testing.assert_array_equal(config.noise.measurement, CONFIG.noise.measurement)
+        truth = truth_constants(config, simulator_parameters(config), "ceramic", False, False, 0.0,
+                                np.random.default_rng(0))
+        assert simulator_parameters(config).substeps >= required_substeps(truth, 5000.0 * RPM, config.sample_period)
+    # 40 draws reach both ends of the stiffness and friction ranges and every law and exponent
+    assert min(factors) < 0.4 and max(factors) > 2.5
+    assert {v.overrides["simulator.damping_law"] for v in rigs} == set(ranges["damping_law"])
+    assert {v.overrides["simulator.ceramic.contact_exponent"] for v in rigs} == set(ranges["contact_exponent"])
+    frictions = [v.overrides["simulator.ceramic.friction_kinetic"] for v in rigs]
+    assert min(frictions) < 0.08 and max(frictions) > 0.27
+    with pytest.raises(ValueError, match="index >= 1"):
+        drawn_variant(0, 0)
+    with pytest.raises(ValueError, match=r"drawn_<seed>_<index>"):
+        variant("drawn_x_1")
+
+
+@pytest.mark.parametrize("name", ["drawn_0_1", "drawn_0_2"])
+def test_a_drawn_rig_touches_down_and_its_rig_file_loads_back(name, tmp_path):
+    v = variant(name)
+    (record,) = simulate_variant(v, 1, seed=0)  # the substeps are enough, or the simulator refuses them
+    after = slice(record.drop_index, None)
+    assert record.radial_contact[after].any() and record.axial_contact[after].any()
+    assert np.isfinite(record.contact_force).all()
+    path = write_rig_yaml(v, tmp_path)
+    assert dict(load_config(path).parameters) == dict(variant_config(v).parameters)
+    assert v.description in path.read_text()
+
+
+def test_required_substeps_is_the_step_size_check_s_limit():
+    config = load_config(overrides=variant("stiff_quiet").overrides)
+    params = simulator_parameters(config)
+    truth = truth_constants(config, params, "ceramic", False, False, 0.0, np.random.default_rng(0))
+    speed, period = 5000.0 * RPM, config.sample_period
+    needed = required_substeps(truth, speed, period)
+    check_step_size(dataclasses.replace(params, substeps=needed), truth, speed, period)
+    with pytest.raises(ConfigError, match=f"use at least {needed}"):
+        check_step_size(dataclasses.replace(params, substeps=needed - 1), truth, speed, period)
 
 
 def test_a_drop_without_touchdown_is_refused():
