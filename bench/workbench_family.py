@@ -7,7 +7,8 @@ guess), run `touchdown diagnose --coeffs`, and read its verdict: the candidate i
 "unexplained"), the margin to the second, the fitted parameters against the truth, and the
 held-out k-step prediction error of the baseline and with the named candidate.
 
-    .venv/bin/python bench/workbench_family.py [--cases a,b] [--out DIR] [--fit N] [--from-guess] [-p NAME:=VALUE ...]
+    .venv/bin/python bench/workbench_family.py [--cases a,b] [--rig NAME] [--out DIR] [--fit N] [--from-guess]
+        [-p NAME:=VALUE ...]
 
 --fit N is passed to every `touchdown diagnose` call (default: diagnose's own, 10 since 2026-11-25); each call's wall
 time is kept in the row ("diagnose_seconds"). --scale K makes each chosen case's hidden effect K times
@@ -16,6 +17,8 @@ as large (a sensor gain's deviation from 1): how large an effect must be for the
 -p contact.friction:=co_rotating_ring). --simulator NAME:=VALUE changes the simulated truth of every chosen case
 (a key under the rig YAML's `simulator.`, e.g. --simulator ceramic.friction_static:=0.18: no Stribeck drop on the
 family's ceramic balls), to see what another physical effect does to a case; the case's name says so.
+--rig NAME runs every chosen case on that rig instead of its own: another of the family, or one drawn at random
+(`drawn_<seed>_<index>`, `touchdown_ros.sim.family.drawn_variant`) whose constants nobody has looked at.
 Effects given with -p effects.active:=[...] (the rig's own terms, e.g. amb_release with the AMB's constants as
 -p rig.amb_stiffness:=...) stay switched on beside those the rounds add.
 
@@ -374,12 +377,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--simulator", action="append", default=[], metavar="NAME:=VALUE",
                         help="a change of every chosen case's simulated truth (a key under simulator.)")
     parser.add_argument("--drops", type=int, default=DROPS, help=f"drops per case (default {DROPS})")
+    parser.add_argument("--rig", help="run every chosen case on this rig instead of its own (a family name or a "
+                                      "rig drawn at random, drawn_<seed>_<index>)")
     args = parser.parse_args(argv)
     if args.drops < 1:
         parser.error(f"--drops: {args.drops}: at least one drop")
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",") or c.rig in args.cases.split(",")]
     if not chosen:
         parser.error(f"no such case; choose from {', '.join(c.name for c in CASES)}")
+    if args.rig:
+        try:
+            variant(args.rig)
+        except ValueError as error:
+            parser.error(f"--rig: {error}")
+        moved = [c._replace(rig=args.rig) for c in chosen]
+        chosen = [c for i, c in enumerate(moved) if c.name not in {m.name for m in moved[:i]}]  # one per name
     if args.scale is not None:
         try:
             chosen = [scaled(c, args.scale) for c in chosen]
