@@ -88,7 +88,7 @@ FINALIST_MARGIN = 20.0
 #: refined too. The laws are screened with a simpler model than the one refined (with a spinning ring, the ring
 #: turning with the rotor), and refining moves the criterion by far more than FINALIST_MARGIN: on a rig drawn at
 #: random with a Hunt-Crossley n = 10/9 contact the screening put that law 37 behind the linear one, refined it
-#: was about 120 ahead and its radial peaks within 3 % where the linear law's missed by 11-14 %
+#: was 54 ahead and its radial peaks within 3 % where the linear law's missed by 11-14 %
 #: (docs/calibration.md, "Eight rigs drawn at random"). The paper's campaign screens its laws 500 and more apart.
 LAW_FINALIST_MARGIN = 100.0
 
