@@ -227,7 +227,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--truth takes simulator.* and rig.* names only (the estimator's settings are -p)")
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
-    names = args.variants.split(",") if args.variants else [] if args.drawn else [v.name for v in VARIANTS]
+    if args.variants:
+        names = args.variants.split(",")
+    else:
+        names = [] if args.drawn else [v.name for v in VARIANTS]
     names += [v.name for v in drawn_variants(args.draw_seed, args.drawn)]
     for name in names:
         log = sys.stderr if args.verbose else io.StringIO()
