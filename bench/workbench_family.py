@@ -390,8 +390,7 @@ def main(argv: list[str] | None = None) -> int:
             variant(args.rig)
         except ValueError as error:
             parser.error(f"--rig: {error}")
-        moved = [c._replace(rig=args.rig) for c in chosen]
-        chosen = [c for i, c in enumerate(moved) if c.name not in {m.name for m in moved[:i]}]  # one per name
+        chosen = list({c.name: c._replace(rig=args.rig) for c in chosen}.values())  # one per name ("no hidden effect")
     if args.scale is not None:
         try:
             chosen = [scaled(c, args.scale) for c in chosen]

@@ -228,9 +228,9 @@ def test_drawn_rigs_span_the_ranges_in_every_quantity_at_once():
         config = variant_config(v)
         assert config.nominal == CONFIG.nominal, v.name  # the estimator's guess stays the reference's
         np.testing.assert_array_equal(config.noise.measurement, CONFIG.noise.measurement)
-        truth = truth_constants(config, simulator_parameters(config), "ceramic", False, False, 0.0,
-                                np.random.default_rng(0))
-        assert simulator_parameters(config).substeps >= required_substeps(truth, 5000.0 * RPM, config.sample_period)
+        params = simulator_parameters(config)
+        truth = truth_constants(config, params, "ceramic", False, False, 0.0, np.random.default_rng(0))
+        assert params.substeps >= required_substeps(truth, 5000.0 * RPM, config.sample_period)
     # 40 draws reach both ends of the stiffness and friction ranges and every law and exponent
     assert min(factors) < 0.4 and max(factors) > 2.5
     assert {v.overrides["simulator.damping_law"] for v in rigs} == set(ranges["damping_law"])

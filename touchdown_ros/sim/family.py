@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Mapping, Sequence
@@ -165,7 +166,7 @@ DRAWN_RANGES: Mapping[str, Any] = MappingProxyType({
     "damping_factor_log": (1.0 / 3.0, 3.0),  # Hunt-Crossley D or Kelvin-Voigt C over the reference's
     "friction_kinetic": (0.05, 0.30),  # mu_k
     "static_over_kinetic": (1.1, 1.4),  # mu_s / mu_k
-    "mass_factor": (0.7, 1.3),  # the rotor's mass over the reference's 240 kg (the user knows it)
+    "mass_factor": (0.7, 1.3),  # the rotor's mass over the reference's (the user knows it)
     "noise_rms": (1.0e-6, 5.0e-6),  # m, the sensor's noise per axis
 })
 #: Name of a drawn rig: drawn_<seed>_<index>.
@@ -182,13 +183,21 @@ def _significant(value: float, digits: int = 3) -> float:
     return float(f"{value:.{digits}g}")
 
 
+@lru_cache(maxsize=1)
+def _reference() -> tuple[float, Mapping[str, float]]:
+    """The reference rig's rotor mass (kg) and its ceramic ball's contact constants, which a draw scales."""
+    config = load_config()
+    return config.rig.mass, simulator_parameters(config).balls["ceramic"]
+
+
 def _substeps(overrides: Mapping[str, Any]) -> int:
-    """RK4 substeps per sample for the rig's nominal truth at 5000 rpm, with margin, in steps of 50, at least 100."""
+    """RK4 substeps per sample for the rig's nominal truth at a variant's drop speed, with margin, in steps of 50,
+    at least 100."""
     config = load_config(overrides={**overrides, "simulator.variation": 0.0})
     truth = truth_constants(
         config, simulator_parameters(config), "ceramic", False, False, 0.0, np.random.default_rng(0)
     )
-    needed = _SUBSTEP_MARGIN * required_substeps(truth, 5000.0 * RPM, config.sample_period)
+    needed = _SUBSTEP_MARGIN * required_substeps(truth, Variant.speed_rpm * RPM, config.sample_period)
     return max(100, 50 * math.ceil(needed / 50))
 
 
@@ -200,6 +209,7 @@ def drawn_variant(seed: int, index: int) -> Variant:
         raise ValueError(f"a drawn rig needs seed >= 0 and index >= 1, got {seed} and {index}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0x0D7A]))
     r = DRAWN_RANGES
+    reference_mass, ball = _reference()
     radial_factor = _log_uniform(rng, *r["stiffness_factor_log"])
     low, high = r["stiffness_factor_log"]
     axial_factor = float(np.clip(radial_factor * _log_uniform(rng, *r["axial_over_radial_log"]), low, high))
@@ -208,9 +218,9 @@ def drawn_variant(seed: int, index: int) -> Variant:
     damping_factor = _log_uniform(rng, *r["damping_factor_log"])
     mu_k = rng.uniform(*r["friction_kinetic"])
     mu_s = mu_k * rng.uniform(*r["static_over_kinetic"])
-    mass = 240.0 * rng.uniform(*r["mass_factor"])
+    mass = reference_mass * rng.uniform(*r["mass_factor"])
     noise = rng.uniform(*r["noise_rms"])
-    stiffness = {axis: _significant(matched_stiffness(exponent, _REFERENCE_STIFFNESS * factor))
+    stiffness = {axis: _significant(matched_stiffness(exponent, ball[f"{axis}_stiffness"] * factor))
                  for axis, factor in (("radial", radial_factor), ("axial", axial_factor))}
     overrides: dict[str, Any] = {
         "simulator.ceramic.contact_exponent": exponent,
@@ -223,11 +233,11 @@ def drawn_variant(seed: int, index: int) -> Variant:
         "sensor.noise_rms": _significant(noise),
     }
     if law == "linear":
-        overrides.update(_both("viscous_damping", _significant(5.0e4 * damping_factor)))
+        overrides.update(_both("viscous_damping", _significant(ball["radial_viscous_damping"] * damping_factor)))
         damping = f"Kelvin-Voigt C {overrides['simulator.ceramic.radial_viscous_damping']:.3g} N s/m"
     else:
-        overrides["simulator.ceramic.radial_damping"] = _significant(20.0 * damping_factor)
-        overrides["simulator.ceramic.axial_damping"] = _significant(6.0 * damping_factor)
+        for axis in ("radial", "axial"):
+            overrides[f"simulator.ceramic.{axis}_damping"] = _significant(ball[f"{axis}_damping"] * damping_factor)
         damping = (f"Hunt-Crossley D_R {overrides['simulator.ceramic.radial_damping']:.3g} s/m, "
                    f"D_Z {overrides['simulator.ceramic.axial_damping']:.3g} s/m")
     overrides["simulator.substeps"] = _substeps(overrides)
