@@ -1,4 +1,4 @@
-"""The rotor's speed read from its orbit, and speed effects started there.
+"""The rotor's speed and the bearing's centre read from its orbit, and effects started there.
 
 A rotor that has settled on the bore whirls forward about the bearing's centre at about its own
 speed (the ring turns with it, the slip is a fraction of a per cent), so the angle of the measured
@@ -6,10 +6,16 @@ speed (the ring turns with it, the slip is a fraction of a per cent), so the ang
 before any model is fitted. Stage 1's fit of a speed effect's parameters has many local minima
 (the ring's friction changes sign with the slip the speed sets), and from the library's defaults
 it stays in one: `speed_effects_from_orbits` gives it a start read from the data instead.
+
+The same whirl goes round a circle about the bearing's centre: where the sensors read that centre
+off their zero (a sensor offset, or a bearing mounted off the sensors' axis, which the model cannot
+tell apart), the centre of the measured orbit is the offset (`orbit_centre`). From zero a sensor
+offset's fit moves only with the contact constants, and can stop on the way (drawn_1_1, 30 um in x:
+3.3 um, 2026-12-07): `sensor_offsets_from_orbits` starts it at the orbit's centre.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +40,16 @@ MIN_WINDOWS = 4
 #: its fit leaves at most this share of the misfit of a constant speed (the scatter of a steady whirl).
 MIN_SPAN = 0.02
 SHOWN = 0.25
+#: The on-bore samples go round the bore when each of this many equal sectors of angle about the orbit's
+#: centre holds at least `SECTOR_SHARE` of its even share of them (a rotor resting on one side does not).
+SECTORS = 12
+SECTOR_SHARE = 0.2
+#: A centre off the sensors' zero shows an offset on an axis when it lies this many standard errors of the
+#: records' centres from zero, and further than the on-bore samples scatter about their circle (the
+#: rotor's bouncing moves one record's centre by 3-5 um on rigs without an offset, 2026-12-07).
+CENTRE_SIGNIFICANCE = 3.0
+#: The sensor offsets an orbit's centre starts: effect -> axis of the centre (x 0, y 1).
+OFFSET_AXES = {"sensor_offset_x": 0, "sensor_offset_y": 1}
 
 
 class OrbitSpeeds(NamedTuple):
@@ -70,6 +86,72 @@ def whirl_speeds(etas: np.ndarray, h: float, window: float = WINDOW) -> OrbitSpe
     speeds_ = np.asarray(speeds)
     first = int(np.argmax(speeds_ >= (1.0 - SPUN_UP) * speeds_.max()))
     return OrbitSpeeds(np.asarray(times[first:]), speeds_[first:])
+
+
+class OrbitCentre(NamedTuple):
+    """The centre of the circle the rotor goes round on the bore, as the sensors read it."""
+
+    centre: np.ndarray  # (2,) m, x and y: the mean of the records'
+    sd: np.ndarray  # (2,) m, standard error of the mean from the records' scatter (NaN with one record)
+    scatter: float  # m, rms distance of the on-bore samples from their circle, over the records
+
+    def shows(self, axis: int) -> bool:
+        """Whether the centre is off the sensors' zero on `axis` (`CENTRE_SIGNIFICANCE`)."""
+        offset = abs(float(self.centre[axis]))
+        significant = not np.isfinite(self.sd[axis]) or offset > CENTRE_SIGNIFICANCE * float(self.sd[axis])
+        return significant and offset > self.scatter
+
+
+def _circle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (2,) m of the circle through points (N, 2) by algebraic least squares, and the points'
+    distances from it minus its radius (N,) m."""
+    design = np.column_stack([2.0 * xy, np.ones(len(xy))])
+    solution = np.linalg.lstsq(design, np.sum(xy**2, axis=1), rcond=None)[0]
+    centre = solution[:2]
+    distance = np.hypot(*(xy - centre).T)
+    return centre, distance - np.sqrt(max(solution[2] + centre @ centre, 0.0))
+
+
+def record_orbit_centre(etas: np.ndarray, iterations: int = 4) -> tuple[np.ndarray, float] | None:
+    """The centre (2,) m of the samples of a record (N, 3) m on the bore (their radius about the centre at
+    least `ON_BORE` of its 95th percentile), found from the sensors' zero by refitting the circle
+    `iterations` times, and their rms distance from the circle (m); None where they do not go round the
+    bore (`SECTORS`)."""
+    xy = np.asarray(etas, dtype=float)[:, :2]
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    centre = np.zeros(2)
+    if len(xy) < 3 * SECTORS:
+        return None
+    for _ in range(iterations):
+        radius = np.hypot(*(xy - centre).T)
+        on_bore = xy[radius >= ON_BORE * np.percentile(radius, 95)]
+        centre, misfit = _circle(on_bore)
+    angles = np.arctan2(on_bore[:, 1] - centre[1], on_bore[:, 0] - centre[0])
+    counts = np.histogram(angles, bins=SECTORS, range=(-np.pi, np.pi))[0]
+    if counts.min() < SECTOR_SHARE * len(on_bore) / SECTORS or not np.isfinite(centre).all():
+        return None
+    return centre, float(np.sqrt(np.mean(misfit**2)))
+
+
+def orbit_centre(records: Sequence[np.ndarray]) -> OrbitCentre | None:
+    """The mean of the records' orbit centres (`record_orbit_centre`, each (N, 3) m) and its standard
+    error from their scatter; None where no record goes round the bore."""
+    found = [c for c in map(record_orbit_centre, records) if c is not None]
+    if not found:
+        return None
+    centres = np.asarray([c for c, _ in found])
+    sd = centres.std(axis=0, ddof=1) / np.sqrt(len(centres)) if len(centres) > 1 else np.full(2, np.nan)
+    return OrbitCentre(centres.mean(axis=0), sd, float(np.sqrt(np.mean([s**2 for _, s in found]))))
+
+
+def sensor_offsets_from_orbits(names: Sequence[str], records: Sequence[np.ndarray]) -> dict[str, dict[str, float]]:
+    """{offset: {"offset": m}} of the sensor offsets among `names` (`OFFSET_AXES`) on whose axis the
+    records' orbit centre shows an offset (`OrbitCentre.shows`): where each starts."""
+    wanted = {name: axis for name, axis in OFFSET_AXES.items() if name in names}
+    centre = orbit_centre(records) if wanted else None
+    if centre is None:
+        return {}
+    return {name: {"offset": float(centre.centre[axis])} for name, axis in wanted.items() if centre.shows(axis)}
 
 
 def _speed_of(effect: Effect, params: dict[str, jax.Array], times: np.ndarray, rig) -> jax.Array:
@@ -133,29 +215,52 @@ def speed_effects_from_orbits(
     return effects.with_values(moved), moved
 
 
+def effects_from_orbits(
+    effects: Effects, rig, records: Sequence[np.ndarray], gates: Sequence[Sequence[float]], h: float
+) -> tuple[Effects, dict[str, dict[str, float]]]:
+    """`speed_effects_from_orbits`, and the sensor offsets started at the orbit's centre of the records
+    they act in (`sensor_offsets_from_orbits`): the effects and {effect: parameters} of those moved."""
+    started, moved = speed_effects_from_orbits(effects, rig, records, gates, h)
+    for i, name in enumerate(effects.names):
+        if name in OFFSET_AXES:
+            acting = [etas for etas, g in zip(records, gates) if g[i] > 0.5]
+            moved.update(sensor_offsets_from_orbits([name], acting))
+    return started.with_values(moved), moved
+
+
 def candidate_starts(
     candidates: Sequence[Effect], rig, records: Sequence[np.ndarray], h: float
 ) -> dict[str, dict[str, float]]:
-    """{candidate: parameters} of the speed candidates (acting in every record) whose speed fits the
-    records' orbits (`speed_effects_from_orbits`); candidates the orbits do not move are left out."""
-    speed = Effects(tuple(c for c in candidates if c.kind == SPEED))
-    return speed_effects_from_orbits(speed, rig, records, [speed.gates] * len(records), h)[1]
+    """{candidate: parameters} of the candidates (acting in every record) that the records' orbits
+    start (`effects_from_orbits`): speed effects whose speed fits them, sensor offsets their centre
+    shows; candidates the orbits do not move are left out."""
+    shown = Effects(tuple(c for c in candidates if c.kind == SPEED or c.name in OFFSET_AXES))
+    return effects_from_orbits(shown, rig, records, [shown.gates] * len(records), h)[1]
 
 
-def describe_starts(moved: dict[str, dict[str, float]], before: dict[str, dict[str, float]]) -> list[str]:
-    """One line per effect `speed_effects_from_orbits` moved: its new start and the value it had."""
+def describe_starts(
+    moved: Mapping[str, Mapping[str, float]], before: Mapping[str, Mapping[str, float]]
+) -> list[str]:
+    """One line per effect `effects_from_orbits` moved: its new start and the value it had."""
     return [
-        f"{name} starts where its speed fits the orbit's (the rotor whirling on the bore): "
-        + ", ".join(f"{k} {v:.4g} (was {before[name][k]:.4g})" for k, v in values.items())
+        f"{name} starts "
+        + ("at the orbit's centre (the bearing's centre as the sensors read it)" if name in OFFSET_AXES
+           else "where its speed fits the orbit's (the rotor whirling on the bore)")
+        + ": " + ", ".join(f"{k} {v:.4g} (was {before[name][k]:.4g})" for k, v in values.items())
         for name, values in moved.items()
     ]
 
 
 __all__ = [
+    "OrbitCentre",
     "OrbitSpeeds",
     "candidate_starts",
     "describe_starts",
+    "effects_from_orbits",
     "fit_speed_effect",
+    "orbit_centre",
+    "record_orbit_centre",
+    "sensor_offsets_from_orbits",
     "speed_effects_from_orbits",
     "whirl_speeds",
 ]

@@ -47,7 +47,7 @@ from touchdown_ros.core.calibration import (
 )
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
-from touchdown_ros.core.orbit import describe_starts, speed_effects_from_orbits
+from touchdown_ros.core.orbit import describe_starts, effects_from_orbits
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
 from touchdown_ros.core.types import EXACT_PAIR, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
@@ -1023,10 +1023,11 @@ def filtered_records(
 
 
 def started_from_orbits(config: Config, data: TrainingData, stream=STDERR) -> Config:
-    """The rig with its speed effects started where their speed fits the bags' orbits
-    (`core.orbit.speed_effects_from_orbits`, each in the bags it acts in), said on the stream."""
+    """The rig with its speed effects started where their speed fits the bags' orbits and its x and y
+    sensor offsets at the orbits' centre where it shows one (`core.orbit.effects_from_orbits`, each in the
+    bags it acts in), said on the stream."""
     effects = config.effects
-    started, moved = speed_effects_from_orbits(
+    started, moved = effects_from_orbits(
         effects, config.rig, data.records, data.gates(effects), config.sample_period
     )
     for line in describe_starts(moved, effects.values()):

@@ -266,10 +266,11 @@ def refitted_constants(theta: Stage1) -> dict[str, float]:
 
 
 def candidates_to_fit(frols_order: Sequence[str], count: int, shown_by_orbits: Sequence[str]) -> list[str]:
-    """The candidates `touchdown diagnose` fits: FROLS's best `count`, and every speed candidate the
-    orbits show (`core.orbit.candidate_starts`) wherever FROLS put it. FROLS linearises; a braked
-    rotor's unbalance lags by radians, and its linearised share of the missing force says little
-    (0.3 %, 11th of 16 on a braked roller_noisy whose brake the fit names 112 ahead, 2026-12-02)."""
+    """The candidates `touchdown diagnose` fits: FROLS's best `count`, and every candidate the orbits
+    show (`core.orbit.candidate_starts`: a speed effect, a sensor offset) wherever FROLS put it. FROLS
+    linearises; a braked rotor's unbalance lags by radians, and its linearised share of the missing force
+    says little (0.3 %, 11th of 16 on a braked roller_noisy whose brake the fit names 112 ahead,
+    2026-12-02)."""
     names = list(frols_order[:count])
     return names + [name for name in shown_by_orbits if name not in names]
 
@@ -292,8 +293,8 @@ def fit_candidates(
     candidates again from the best one's constants, keeping the lower loss; where the step cap stopped the baseline
     or one of the `settings.to_convergence` best, go on from there to convergence; fit the `settings.per_bag` best
     (by the criterion) again bag by bag, their constants kept. The measures' and standard errors' programs compile
-    in a background thread while the baseline's fit compiles the loss's (`Ahead`). A speed candidate starts where
-    `starts` puts it (default: where its speed fits the records' orbits, `core.orbit.candidate_starts`)."""
+    in a background thread while the baseline's fit compiles the loss's (`Ahead`). A candidate starts where
+    `starts` puts it (default: where the records' orbits put it, `core.orbit.candidate_starts`)."""
     with Ahead(stream) as ahead:
         candidates = [fx.resolve(n) for n in names if n not in model.effects.names]
         if starts is None:

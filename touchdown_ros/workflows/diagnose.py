@@ -238,7 +238,8 @@ def diagnose(
     )
     # A speed effect's force is far from linear in its parameters (a braked rotor's unbalance lags by
     # radians): it is ranked (linearised) and fitted from where its speed fits the bags' orbits, when they show
-    # it, and then fitted whatever its rank (`candidates_to_fit`).
+    # it, and then fitted whatever its rank (`candidates_to_fit`). So is a sensor offset the orbits' centre
+    # shows: from zero its fit moves only with the contact constants and can stop on the way.
     library = [e for name, e in fx.LIBRARY.items() if name not in estimator.model.effects.names]
     starts = candidate_starts(library, config.rig, [b.result.estimate.measured for b in results], config.sample_period)
     for line in describe_starts(starts, {name: fx.LIBRARY[name].defaults() for name in starts}):
