@@ -323,3 +323,23 @@ def test_evaluation_md_says_which_coefficients_how_held_out_and_what_the_means_a
     heading = (out / "evaluation.md").read_text().split("| bag |")[0]
     assert heading.startswith("# Evaluation") and str(coefficient_file) in heading
     assert "in-sample" in heading and "absolute value" in heading
+
+
+def test_a_levitated_window_too_noisy_for_the_threshold_names_the_threshold_that_would_do(exp_11, tmp_path, capsys):
+    """The levitated z wobbling 8 um rms (a thrust's, a noisy sensor's): train refuses the bag before the work,
+    naming it and the drop_detection.threshold that takes it; estimate with that threshold finds the drop."""
+    onset = onset_sample(exp_11)
+
+    def wobble(stamps, xyz):
+        xyz[: onset - 20, 2] += 1.13e-5 * np.sin(2 * np.pi * 150.0 * np.arange(onset - 20) * CONFIG.sample_period)
+        return stamps, xyz, np.ones(len(stamps), bool)
+
+    bag = damaged(exp_11, tmp_path / "wobbling", wobble)
+    assert main(["train", str(bag), "-o", str(tmp_path / "c.yaml")]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert str(bag) in error and "is not clean" in error and len(error.strip().splitlines()) == 1
+    suggested = error.split("-p drop_detection.threshold:=")[1].split(")")[0]
+    assert 2.2e-5 <= float(suggested) <= 2.6e-5, suggested
+    assert not (tmp_path / "c.yaml").exists()
+    summary = estimate(bag, tmp_path / "out", "-p", f"drop_detection.threshold:={suggested}")
+    assert summary["samples"] > 1000 and summary["input"]["filter_restarts"] == 0, summary

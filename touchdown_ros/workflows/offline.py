@@ -16,7 +16,9 @@ from touchdown_ros.core.estimate import (
     force_std,
     make_estimator,
 )
-from touchdown_ros.core.input_policy import InputPolicy, RecordInput, split_record, window_is_clean
+from touchdown_ros.core.input_policy import (
+    CLEAN_WINDOW_FRACTION, WINDOW_SPREAD_OF_THRESHOLD, InputPolicy, RecordInput, split_record, window_is_clean,
+)
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import (
@@ -192,10 +194,16 @@ def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, in
     if not window_is_clean(first.etas[:window], drop.threshold) or len(first.etas) < window:
         usable = np.isfinite(first.etas[:window]).all(axis=1)
         spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
+        # a levitated rotor on a noisy sensor (or wobbling under a thrust) may need only a higher threshold
+        needed = spread / WINDOW_SPREAD_OF_THRESHOLD
+        noisy = (f"; if the rotor is levitated there, its sensor is this noisy: give drop_detection.threshold "
+                 f"{needed * 1e6:.3g} um or more (-p drop_detection.threshold:={1e-6 * np.ceil(needed * 1e6):.6g})"
+                 if np.mean(usable) >= CLEAN_WINDOW_FRACTION and needed < config.rig.axial_clearance else "")
         raise NoDropError(
             f"{path}: the levitated window (first {drop.levitated_window * 1e3:g} ms) is not clean: "
             f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
             f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
+            + noisy
         )
     reference = drop.reference(first.etas[:, 2])
     for k, segment in enumerate(record.segments):
