@@ -15,7 +15,7 @@ import pytest
 from touchdown_ros.core.diagnostics.regressors import effect_regressors
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import measurement, phi
-from touchdown_ros.core.ekf import Belief, ekf, model_measurement, position, update, with_jacobian
+from touchdown_ros.core.ekf import Belief, ekf, model_measurement, position, state_reading, update, with_jacobian
 from touchdown_ros.core.estimate import make_estimator
 from touchdown_ros.core.input_policy import InputPolicy, split_record
 from touchdown_ros.core.training import loss, make_batch
@@ -227,3 +227,26 @@ def test_live_chunk_filter_equals_the_offline_filter_with_a_measurement_effect()
     # and the effect changed the numbers: the same record without it filters to other states
     plain = offline(stamps, measured)
     assert not np.allclose(np.asarray(plain.filtered.state), np.asarray(reference.filtered.state), rtol=1e-6)
+
+
+def test_the_filter_starts_from_the_state_the_onset_reading_shows():
+    """The onset's reading is the sensor's (gain * z + offset): the filter starts from the position that
+    reads it, and its first innovations are the noise's size, not the offset's; `state_reading` inverts a
+    gain and an offset and leaves a model without measurement effects alone."""
+    from test_streaming import CONFIG
+
+    values = {"sensor_gain_z": {"gain": GAIN}, "sensor_offset_z": {"offset": OFFSET}}
+    config = dataclasses.replace(CONFIG, effects=library_effects(SENSOR["effects.active"], values))
+    model, noise, h = config.model(), config.noise, config.sample_period
+    mean = jnp.zeros(model.law.state_size).at[:3].set(jnp.array([1e-5, -2e-5, -2e-4]))
+    np.testing.assert_allclose(state_reading(model, mean)[:3], [1e-5, -2e-5, (-2e-4 - OFFSET) / GAIN], rtol=1e-12)
+    assert state_reading(CONFIG.model(), mean) is mean
+    _, measured = _sensed_model_drop(config)
+    onset = int(round(0.02 / h))
+    record = measured[onset : onset + 200]
+    initial = Belief(jnp.asarray(np.nanmean(record[:5], axis=0).tolist() + [0.0] * (len(noise.initial) - 3)),
+                     jnp.diag(jnp.asarray(noise.initial)))
+    outputs = ekf(model, noise, h, initial, jnp.asarray(record))
+    assert abs(float(outputs.prior.mean[0, 2]) - (float(initial.mean[2]) - OFFSET) / GAIN) < 1e-9
+    first = np.asarray(outputs.innovation)[:5, 2]  # 21 um and more from the reading itself
+    assert np.sqrt(np.mean(first**2)) < 2.5 * config.noise_rms, first

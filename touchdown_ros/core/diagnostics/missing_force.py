@@ -16,7 +16,7 @@ from touchdown_ros.core.dynamics import (
     at_time, contact_forces, later, phi, ring_speed_after, rk4, spin_acceleration, unbalance_change,
 )
 from touchdown_ros.core.ekf import (
-    Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, sample_times,
+    Belief, Transition, extended_kalman_filter, model_measurement, rts_smoother, sample_times, state_reading,
 )
 from touchdown_ros.core.effects import SPEED
 from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Model
@@ -84,7 +84,7 @@ def disturbance_smoother(
     standard deviation: the force the model lacks, decided by the data."""
     Q = jnp.diag(jnp.concatenate([jnp.asarray(process), jnp.full(3, force_walk**2)]))
     R = jnp.diag(jnp.asarray(measurement))
-    mean0 = jnp.concatenate([initial.mean, jnp.zeros(3)])
+    mean0 = jnp.concatenate([state_reading(model, initial.mean), jnp.zeros(3)])
     cov0 = jax.scipy.linalg.block_diag(initial.cov, force_initial**2 * jnp.eye(3))
     transition, measure = augmented_transition(model, h), model_measurement(model)
     times = sample_times(model, h, len(etas))

@@ -9,11 +9,14 @@ its filter from the data after them, as the offline tools do (`core.input_policy
 """
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import jax
 import numpy as np
 
+from touchdown_ros.core.dynamics import measures
+from touchdown_ros.core.ekf import Belief, state_reading
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.input_policy import bridge_rows, window_is_clean
 from touchdown_ros.core.streaming.chunk_filter import ChunkFunction, chunk_buffer, flat_belief, make_chunk_filter
@@ -52,6 +55,8 @@ class StreamingEstimator:
         self._sizes = tuple(sorted(set(int(c) for c in settings.chunk_sizes)))
         self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period, model_variance)
         self._initial_cov = np.asarray(noise.initial)
+        # with measurement effects the onset's reading is moved to the state that reads it, as offline
+        self._reading = jax.jit(functools.partial(state_reading, model)) if measures(model) else None
         self.counts = StreamCounts()
         self._grid = StampGrid(settings.policy, settings.resync_after, self.counts)
         self._events: list[StreamEvent] = []
@@ -79,7 +84,7 @@ class StreamingEstimator:
 
     def warm_up(self) -> None:
         """Compile the EKF chunk of every configured length (a few seconds each, cached by JAX)."""
-        prior = flat_belief(initial_belief(np.zeros((1, 3)), self._initial_cov, samples=1))
+        prior = flat_belief(self._onset_belief(np.zeros((1, 3)), samples=1))
         for size in self._sizes:
             jax.block_until_ready(self._chunk(chunk_buffer(np.empty((0, 3)), size, prior)))
 
@@ -292,6 +297,13 @@ class StreamingEstimator:
             self._filter_rows(np.concatenate(stamps) if stamps else np.empty(0, np.int64),
                               np.concatenate(etas) if etas else np.empty((0, 3)), final or k < len(groups) - 1)
 
+    def _onset_belief(self, etas: np.ndarray, samples: int) -> Belief:
+        """`initial_belief` of the first `samples` rows, its position the state that reads them (`state_reading`)."""
+        belief = initial_belief(etas, self._initial_cov, samples=samples)
+        if self._reading is None:
+            return belief
+        return belief._replace(mean=np.asarray(self._reading(belief.mean)))
+
     def _filter_rows(self, stamps: np.ndarray, etas: np.ndarray, final: bool) -> None:
         """Filter rows of one stretch; without a belief, wait (unless final) for the initial position."""
         if len(stamps) == 0:
@@ -305,7 +317,7 @@ class StreamingEstimator:
             if samples is None:
                 self._queue_stamps, self._queue_etas, self._queue_restart = [stamps], [etas], [False]
                 return
-            self._belief = flat_belief(initial_belief(etas, self._initial_cov, samples=samples))
+            self._belief = flat_belief(self._onset_belief(etas, samples))
 
         packed_parts = []
         belief, done, largest = self._belief, 0, self._sizes[-1]
