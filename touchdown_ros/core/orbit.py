@@ -46,7 +46,7 @@ SECTORS = 12
 SECTOR_SHARE = 0.2
 #: A centre off the sensors' zero shows an offset on an axis when it lies this many standard errors of the
 #: records' centres from zero, and further than the on-bore samples scatter about their circle (the
-#: rotor's bouncing moves one record's centre by 3-5 um on rigs without an offset, 2026-12-07).
+#: rotor's bouncing put one record's centre 0-9 um from zero on rigs without an offset, 2026-12-07).
 CENTRE_SIGNIFICANCE = 3.0
 #: The sensor offsets an orbit's centre starts: effect -> axis of the centre (x 0, y 1).
 OFFSET_AXES = {"sensor_offset_x": 0, "sensor_offset_y": 1}
