@@ -221,10 +221,12 @@ def effects_from_orbits(
     """`speed_effects_from_orbits`, and the sensor offsets started at the orbit's centre of the records
     they act in (`sensor_offsets_from_orbits`): the effects and {effect: parameters} of those moved."""
     started, moved = speed_effects_from_orbits(effects, rig, records, gates, h)
+    by_records: dict[tuple[bool, ...], list[str]] = {}  # the offsets acting in the same records share one centre
     for i, name in enumerate(effects.names):
         if name in OFFSET_AXES:
-            acting = [etas for etas, g in zip(records, gates) if g[i] > 0.5]
-            moved.update(sensor_offsets_from_orbits([name], acting))
+            by_records.setdefault(tuple(g[i] > 0.5 for g in gates), []).append(name)
+    for acts, names in by_records.items():
+        moved.update(sensor_offsets_from_orbits(names, [etas for etas, on in zip(records, acts) if on]))
     return started.with_values(moved), moved
 
 
