@@ -327,19 +327,38 @@ def test_evaluation_md_says_which_coefficients_how_held_out_and_what_the_means_a
 
 def test_a_levitated_window_too_noisy_for_the_threshold_names_the_threshold_that_would_do(exp_11, tmp_path, capsys):
     """The levitated z wobbling 8 um rms (a thrust's, a noisy sensor's): train refuses the bag before the work,
-    naming it and the drop_detection.threshold that takes it; estimate with that threshold finds the drop."""
+    naming it and the drop_detection.threshold that takes it; estimate with that threshold finds the drop. Two such
+    bags, the second wobbling more (drawn_1_1's thrust, 2026-12-07: 7.11 and 8.07 um): both named at once, and the
+    threshold that takes both."""
     onset = onset_sample(exp_11)
 
-    def wobble(stamps, xyz):
-        xyz[: onset - 20, 2] += 1.13e-5 * np.sin(2 * np.pi * 150.0 * np.arange(onset - 20) * CONFIG.sample_period)
-        return stamps, xyz, np.ones(len(stamps), bool)
+    def wobbling(amplitude):
+        def wobble(stamps, xyz):
+            xyz[: onset - 20, 2] += amplitude * np.sin(2 * np.pi * 150.0 * np.arange(onset - 20) * CONFIG.sample_period)
+            return stamps, xyz, np.ones(len(stamps), bool)
+        return wobble
 
-    bag = damaged(exp_11, tmp_path / "wobbling", wobble)
+    bag = damaged(exp_11, tmp_path / "wobbling", wobbling(1.13e-5))
     assert main(["train", str(bag), "-o", str(tmp_path / "c.yaml")]) == EXIT_BAD_INPUT
     error = capsys.readouterr().err
     assert str(bag) in error and "is not clean" in error and len(error.strip().splitlines()) == 1
     suggested = error.split("-p drop_detection.threshold:=")[1].split(")")[0]
     assert 2.2e-5 <= float(suggested) <= 2.6e-5, suggested
     assert not (tmp_path / "c.yaml").exists()
-    summary = estimate(bag, tmp_path / "out", "-p", f"drop_detection.threshold:={suggested}")
+
+    more = damaged(exp_11, tmp_path / "wobbling_more", wobbling(1.3e-5))
+    assert main(["train", str(more), "-o", str(tmp_path / "c.yaml")]) == EXIT_BAD_INPUT
+    alone = capsys.readouterr().err.split("-p drop_detection.threshold:=")[1].split(")")[0]
+    assert float(alone) > float(suggested)
+    assert main(["train", str(bag), str(exp_11), str(more), "-o", str(tmp_path / "c.yaml")]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert "2 of 3 bags cannot be used: (1) " in error and len(error.strip().splitlines()) == 1, error
+    first, second = error.split("(1) ")[1].split(" (2) ")
+    assert str(bag) in first and str(more) in second and "is not clean" in first and "is not clean" in second
+    assert str(exp_11) not in error.replace(str(bag), "").replace(str(more), "")
+    assert "The 2 levitated windows too noisy for drop_detection.threshold are all taken by" in second
+    both = second.split("are all taken by")[1].split("-p drop_detection.threshold:=")[1].split(")")[0]
+    assert both == alone
+    assert not (tmp_path / "c.yaml").exists()
+    summary = estimate(more, tmp_path / "out", "-p", f"drop_detection.threshold:={both}")
     assert summary["samples"] > 1000 and summary["input"]["filter_restarts"] == 0, summary

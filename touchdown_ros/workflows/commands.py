@@ -23,8 +23,7 @@ from touchdown_ros.workflows.offline import (
     FILTERED,
     SMOOTHED,
     BagEstimate,
-    check_bag,
-    check_training_bag,
+    check_bags,
     estimate_bag,
     estimator_for,
     write_estimate_bag,
@@ -110,8 +109,7 @@ def estimate_bags(
     targets = [out / f"{Path(bag).name.removesuffix('.mcap')}_estimate" for bag in bags]
     for target in targets:
         refuse_existing(target, overwrite)
-    for bag in bags:  # every bag is checked before anything is written
-        check_bag(config, bag)
+    check_bags(config, bags)  # every bag is checked before anything is written
     answer = FILTERED if filtered else SMOOTHED
     estimator = estimator_for(config, *((loaded.coeffs, loaded.effects) if loaded else (None, None)), answer=answer)
     figure_dirs = [out / "figures" / Path(bag).name for bag in bags]
@@ -176,8 +174,7 @@ def train_bags(
     for given in (init, start):
         if given is not None:
             load_coefficients(given, config)
-    for bag in bags:  # every bag is checked before the work
-        check_training_bag(config, bag)
+    check_bags(config, bags, training=True)  # every bag is checked before the work
     with OutputGuard([out]):
         return train(
             config,
@@ -207,8 +204,7 @@ def evaluate_bags(
     config, full = _with_coefficients(config, coefficients)
     trained = Trainable(full.coeffs, full.effects)
     check_writable(out, directory=True)
-    for bag in bags:  # every bag is checked before the work
-        check_training_bag(config, bag)
+    check_bags(config, bags, training=True)  # every bag is checked before the work
     if cross_validated:
         per_bag = cross_validate(config, bags, trained, full.training.regularisation, cv_steps)
     else:
@@ -231,8 +227,7 @@ def diagnose_bags(
     side by side with the model of `compare_with` when given; diagnosis.*, errors.csv, ranking.csv and
     figures in out. Returns diagnosis.json's document."""
     check_writable(out, directory=True)
-    for bag in bags:  # every bag is checked before the work
-        check_bag(config, bag)
+    check_bags(config, bags)  # every bag is checked before the work
     with OutputGuard([out, *(out / name for name in DIAGNOSIS_FILES)]):
         return run_diagnosis(config, bags, out, coeffs=coefficients, compare=compare_with, settings=settings)
 

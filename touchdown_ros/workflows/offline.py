@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import jax
 import numpy as np
@@ -42,7 +42,12 @@ ANSWERS = (SMOOTHED, FILTERED)
 
 
 class NoDropError(ValueError):
-    """The record shows no touchdown."""
+    """The record shows no touchdown; `threshold` (m), where not None, is the drop_detection.threshold that would
+    take its levitated window."""
+
+    def __init__(self, message: str, threshold: float | None = None):
+        super().__init__(message)
+        self.threshold = threshold
 
 
 def check_answer(answer: str) -> str:
@@ -161,6 +166,35 @@ def estimate_record(
     return concatenate_estimates(parts), restarts
 
 
+def check_bags(config: Config, bags: Sequence[str | Path], training: bool = False) -> None:
+    """Check every bag (`check_training_bag` with `training`, else `check_bag`) before any work; where some
+    cannot be used, raise one error naming each (the first's type), and where levitated windows were too noisy
+    for the threshold, the threshold that takes all of them: a user sees every refusal at once."""
+    check = check_training_bag if training else check_bag
+    refusals: list[ValueError] = []
+    for bag in bags:
+        try:
+            check(config, bag)
+        except ValueError as error:
+            refusals.append(error)
+    if len(refusals) == 1:
+        raise refusals[0]
+    if refusals:
+        text = f"{len(refusals)} of {len(bags)} bags cannot be used: " + " ".join(
+            f"({number}) {error}." for number, error in enumerate(refusals, start=1)
+        )
+        needed = [e.threshold for e in refusals if isinstance(e, NoDropError) and e.threshold is not None]
+        if needed:
+            text += (f" The {len(needed)} levitated windows too noisy for drop_detection.threshold are all taken "
+                     f"by {_threshold_words(max(needed))}")
+        raise type(refusals[0])(text)
+
+
+def _threshold_words(needed: float) -> str:
+    """The drop threshold (m) that takes a levitated window, in words and as the option that gives it."""
+    return f"{needed * 1e6:.3g} um or more (-p drop_detection.threshold:={1e-6 * np.ceil(needed * 1e6):.6g})"
+
+
 def check_bag(config: Config, path: str | Path) -> None:
     """Raise (BagError, GridError or NoDropError, naming the file) unless `estimate_bag` can estimate the
     bag: readable, valid samples, stamps on the grid, a clean levitated window, a drop."""
@@ -196,14 +230,16 @@ def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, in
         spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
         # a levitated rotor on a noisy sensor (or wobbling under a thrust) may need only a higher threshold
         needed = spread / WINDOW_SPREAD_OF_THRESHOLD
-        noisy = (f"; if the rotor is levitated there, its sensor is this noisy: give drop_detection.threshold "
-                 f"{needed * 1e6:.3g} um or more (-p drop_detection.threshold:={1e-6 * np.ceil(needed * 1e6):.6g})"
-                 if np.mean(usable) >= CLEAN_WINDOW_FRACTION and needed < config.rig.axial_clearance else "")
+        if not (np.mean(usable) >= CLEAN_WINDOW_FRACTION and needed < config.rig.axial_clearance):
+            needed = None
+        noisy = ("; if the rotor is levitated there, its sensor is this noisy: give drop_detection.threshold "
+                 f"{_threshold_words(needed)}" if needed is not None else "")
         raise NoDropError(
             f"{path}: the levitated window (first {drop.levitated_window * 1e3:g} ms) is not clean: "
             f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
             f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
-            + noisy
+            + noisy,
+            threshold=needed,
         )
     reference = drop.reference(first.etas[:, 2])
     for k, segment in enumerate(record.segments):
