@@ -155,11 +155,18 @@ def window_is_clean(etas: np.ndarray, drop_threshold: float) -> bool:
     """Whether a levitated window (rows with NaN where refused or missing) may give the reference: at
     least CLEAN_WINDOW_FRACTION usable rows, and z spread below WINDOW_SPREAD_OF_THRESHOLD x the drop
     threshold (m)."""
+    needed = threshold_for_window(etas)
+    return needed is not None and needed <= drop_threshold
+
+
+def threshold_for_window(etas: np.ndarray) -> float | None:
+    """The least drop threshold (m) at which a levitated window is clean (`window_is_clean`): its z spread over
+    WINDOW_SPREAD_OF_THRESHOLD; None where fewer than CLEAN_WINDOW_FRACTION of its rows are usable."""
     etas = np.asarray(etas).reshape(-1, 3)
     usable = np.isfinite(etas).all(axis=1)
     if len(etas) == 0 or float(np.mean(usable)) < CLEAN_WINDOW_FRACTION:
-        return False
-    return float(np.std(etas[usable, 2])) <= WINDOW_SPREAD_OF_THRESHOLD * drop_threshold
+        return None
+    return float(np.std(etas[usable, 2])) / WINDOW_SPREAD_OF_THRESHOLD
 
 
 class Segment(NamedTuple):

@@ -17,7 +17,7 @@ from touchdown_ros.core.estimate import (
     make_estimator,
 )
 from touchdown_ros.core.input_policy import (
-    CLEAN_WINDOW_FRACTION, WINDOW_SPREAD_OF_THRESHOLD, InputPolicy, RecordInput, split_record, window_is_clean,
+    InputPolicy, RecordInput, split_record, threshold_for_window,
 )
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
@@ -222,15 +222,16 @@ def check_training_bag(config: Config, path: str | Path) -> None:
 
 def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, int]:
     """(segment, row) of the drop onset in a record under the input policy; the levitated reference
-    comes from the first segment's window, which must be clean (`window_is_clean`)."""
+    comes from the first segment's window, which must be clean (`core.input_policy.window_is_clean`)."""
     first, drop = record.segments[0], config.drop_detector()
     window = drop.window_samples
-    if not window_is_clean(first.etas[:window], drop.threshold) or len(first.etas) < window:
-        usable = np.isfinite(first.etas[:window]).all(axis=1)
-        spread = float(np.std(first.etas[:window][usable, 2])) if usable.any() else float("nan")
+    levitated = first.etas[:window]
+    needed = threshold_for_window(levitated)
+    if needed is None or needed > drop.threshold or len(first.etas) < window:
+        usable = np.isfinite(levitated).all(axis=1)
+        spread = float(np.std(levitated[usable, 2])) if usable.any() else float("nan")
         # a levitated rotor on a noisy sensor (or wobbling under a thrust) may need only a higher threshold
-        needed = spread / WINDOW_SPREAD_OF_THRESHOLD
-        if not (np.mean(usable) >= CLEAN_WINDOW_FRACTION and needed < config.rig.axial_clearance):
+        if needed is not None and not drop.threshold < needed < config.rig.axial_clearance:
             needed = None
         noisy = ("; if the rotor is levitated there, its sensor is this noisy: give drop_detection.threshold "
                  f"{_threshold_words(needed)}" if needed is not None else "")
