@@ -159,6 +159,32 @@ def test_a_candidate_refused_on_held_out_samples_does_not_hide_one_that_passes()
     assert not alone["explained"] and alone["best"] == "trading" and alone["refused"] == []
 
 
+def test_a_candidate_whose_fits_bag_by_bag_disagree_is_not_named_and_one_that_agrees_is():
+    """An unmodelled once-per-revolution thrust on drawn_1_1 (2026-12-07): a side load fitted the two drops best
+    (criterion -217.3, held-out k-step -20 %) at force_x -184.8 +- 29 N on one and -24.2 +- 39 N on the other; a rig's
+    constant is the same in every drop. The true side load on the same rig agreed within its errors."""
+    base = (*_errors(3.0, 9e-6), 8)
+    thrust = {"drop_1": {"force_x": (-184.8, 29.0), "force_y": (137.2, 30.0)},
+              "drop_2": {"force_x": (-24.15, 39.0), "force_y": (83.65, 34.0)}}
+    apart = sel.bag_agreement(thrust)
+    # chi-square by hand: weighted means -127.6 and 113.8 N
+    assert apart.degrees == 2 and abs(apart.chi_square - 12.32) < 0.05 and apart.disagrees
+    assert apart.parameter == "force_x" and apart.values[1] == ("drop_2", -24.15, 39.0)
+    agreeing = sel.bag_agreement({"drop_1": {"offset": (3.003e-5, 2.5e-7)}, "drop_2": {"offset": (2.993e-5, 2.5e-7)}})
+    assert agreeing.degrees == 1 and 0.7 < agreeing.p < 0.8 and not agreeing.disagrees
+    assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 2.5e-7)}}) is None
+    assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 0.0)}, "drop_2": {"offset": (3e-5, 1e-7)}}) is None
+
+    load = sel.judge("radial_load", (*_errors(2.9, 7e-6), 10), base, apart)
+    text = sel.verdict([load])["text"]
+    assert text.startswith("unexplained") and "its fits bag by bag disagree (force_x -184.8 +- 29 on drop_1" in text
+    assert "p = 0.0021" in text and sel.refusal(load, bags=False) is None
+    honest = sel.judge("brake_decay", (*_errors(2.95, 8e-6), 9), base, agreeing)
+    chosen = sel.verdict([load, honest])
+    assert chosen["explained"] and chosen["best"] == "brake_decay" and chosen["refused"] == ["radial_load"]
+    assert sel.verdict([sel.judge("radial_load", (*_errors(2.9, 7e-6), 10), base)])["best"] == "radial_load"
+
+
 def test_a_refusal_names_the_test_the_candidate_failed():
     """side load on stiff_quiet (2026-11-25, co-rotating ring): radial_load lowered the held-out k-step
     error by 6 % but not the held-out NLL; the verdict said "changes the k-step error by -6 % (it must

@@ -190,6 +190,51 @@ PHASE_SIGNIFICANCE = 0.05
 MIN_CRITERION_FALL = COLLINEAR_MARGIN
 
 
+#: Significance at which a candidate's fits bag by bag disagree (`bag_agreement`): 1 %, as the per-bag standard
+#: errors count the sensor noise only and the model's own errors move each bag's fit a little more.
+BAG_AGREEMENT_SIGNIFICANCE = 0.01
+
+
+class BagAgreement(NamedTuple):
+    """Whether a candidate's fits bag by bag agree within their standard errors: the sum over its parameters
+    of sum_b (value_b - weighted mean)^2 / sd_b^2, chi-square with parameters x (bags - 1) degrees of freedom
+    where the candidate is one constant of the rig."""
+
+    chi_square: float
+    degrees: int
+    p: float  # the chance of a chi_square this large where the bags agree
+    parameter: str  # the parameter whose values disagree most
+    values: tuple[tuple[str, float, float], ...]  # its (bag, value, sd)
+
+    @property
+    def disagrees(self) -> bool:
+        """Whether the bags disagree at `BAG_AGREEMENT_SIGNIFICANCE`."""
+        return self.p < BAG_AGREEMENT_SIGNIFICANCE
+
+
+def bag_agreement(per_bag: Mapping[str, Mapping[str, tuple[float, float]]]) -> BagAgreement | None:
+    """The agreement of a candidate's fits bag by bag (bag -> parameter -> (value, sd)); None with fewer than two
+    bags or where a standard error is not a positive number."""
+    bags = list(per_bag)
+    if len(bags) < 2:
+        return None
+    total, worst, worst_chi = 0.0, None, -1.0
+    for parameter in per_bag[bags[0]]:
+        values = np.array([per_bag[b][parameter][0] for b in bags])
+        sd = np.array([per_bag[b][parameter][1] for b in bags])
+        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(sd)) and np.all(sd > 0.0)):
+            return None
+        weights = sd**-2.0
+        mean = float(np.sum(weights * values) / np.sum(weights))
+        chi = float(np.sum(weights * (values - mean) ** 2))
+        total += chi
+        if chi > worst_chi:
+            worst, worst_chi = parameter, chi
+    degrees = len(per_bag[bags[0]]) * (len(bags) - 1)
+    rows = tuple((b, float(per_bag[b][worst][0]), float(per_bag[b][worst][1])) for b in bags)
+    return BagAgreement(total, degrees, float(scipy.stats.chi2.sf(total, degrees)), worst, rows)
+
+
 class Judged(NamedTuple):
     """One candidate's fit against the baseline's."""
 
@@ -200,12 +245,17 @@ class Judged(NamedTuple):
     phase_k_step_fall: dict[str, float]  # the same per contact phase (PHASES)
     #: m^2, per contact phase the candidate's squared held-out k-step errors per block (`Errors.block_squares`)
     phase_block_squares: Mapping[str, np.ndarray] = {}
+    bags: BagAgreement | None = None  # its fits bag by bag (None: not fitted so, or one bag)
 
 
 def judge(
-    name: str, fit: tuple[Errors, dict[str, Errors], int], baseline: tuple[Errors, dict[str, Errors], int]
+    name: str,
+    fit: tuple[Errors, dict[str, Errors], int],
+    baseline: tuple[Errors, dict[str, Errors], int],
+    bags: BagAgreement | None = None,
 ) -> Judged:
-    """A candidate's (fitted errors, held-out errors by phase, free parameters) against the baseline's."""
+    """A candidate's (fitted errors, held-out errors by phase, free parameters) against the baseline's, with
+    the agreement of its fits bag by bag where it was fitted so."""
     fitted, held, parameters = fit
     base_fitted, base_held, base_parameters = baseline
     n = fitted.samples
@@ -224,6 +274,7 @@ def judge(
         fall(base_held["all"].k_step_norm, held["all"].k_step_norm),
         phases,
         {p: held[p].block_squares for p in phases},
+        bags,
     )
 
 
@@ -279,13 +330,13 @@ def verdict(
     k-step errors differ most clearly over the held-out blocks decides between them if they differ
     significantly there (`phase_tests`; e.g. free flight, where a constant load acts and a contact
     effect does not); else the criterion's order stands. A candidate of lower criterion that fails the
-    held-out tests does not hide one that passes them: it fits the bags by compensating something else,
-    and is named beside the verdict."""
+    held-out tests, or whose fits bag by bag disagree (`BagAgreement.disagrees`), does not hide one that
+    passes them: it fits the bags by compensating something else, and is named beside the verdict."""
     order = by_criterion(judged)
     if not order:
         return {"explained": False, "best": None, "margin_to_second": float("nan"), "collinear": None,
                 "text": "unexplained: no candidate was fitted"}
-    passing = [j for j in order if _refusal(j, min_fall, max_rise, min_criterion_fall) is None]
+    passing = [j for j in order if refusal(j, min_fall, max_rise, min_criterion_fall) is None]
     if passing and passing[0] is not order[0]:
         best = passing[0]
         refused = [j for j in order if j.criterion < best.criterion]
@@ -295,7 +346,7 @@ def verdict(
             f"held-out k-step error -{100 * best.k_step_fall:.0f} %, NLL -{best.nll_fall:.3f} per sample); "
             + "; ".join(
                 f"{j.name} fits the bags more closely (criterion {j.criterion:+.1f}) but "
-                f"{_refusal(j, min_fall, max_rise, min_criterion_fall)}: it compensates something else"
+                f"{refusal(j, min_fall, max_rise, min_criterion_fall)}: it compensates something else"
                 for j in refused
             )
         )
@@ -321,8 +372,8 @@ def verdict(
             "k_step_fall": {j.name: j.phase_k_step_fall[phase] for j in order[:2]} if phase else {},
         }
     best = order[0]
-    refusal = _refusal(best, min_fall, max_rise, min_criterion_fall)
-    explained = refusal is None
+    why_not = refusal(best, min_fall, max_rise, min_criterion_fall)
+    explained = why_not is None
     if explained:
         ahead = "" if collinear else f", the next {margin_to_second:.1f} behind"
         text = (
@@ -331,7 +382,7 @@ def verdict(
         )
     else:
         text = (
-            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}): {refusal}; "
+            f"unexplained: the best fitted candidate ({best.name}, criterion {best.criterion:+.1f}): {why_not}; "
             "see the residual's signature"
         )
     if collinear:
@@ -363,10 +414,17 @@ def verdict(
     }
 
 
-def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_fall: float) -> str | None:
+def refusal(
+    candidate: Judged,
+    min_fall: float = MIN_K_STEP_FALL,
+    max_rise: float = MAX_PHASE_RISE,
+    min_criterion_fall: float = MIN_CRITERION_FALL,
+    bags: bool = True,
+) -> str | None:
     """Why a candidate is not the missing effect (None: it is one): its criterion does not beat the
-    baseline's by `min_criterion_fall`, its held-out NLL or k-step error does not fall, or it raises
-    the k-step error in a contact phase by more than `max_rise`."""
+    baseline's by `min_criterion_fall`, its held-out NLL or k-step error does not fall, it raises
+    the k-step error in a contact phase by more than `max_rise`, or (with `bags`) its fits bag by bag
+    disagree (`BagAgreement.disagrees`)."""
     falls = candidate.phase_k_step_fall
     worst_phase = min(falls, key=falls.get, default=None)
     worst_fall = falls[worst_phase] if worst_phase else 0.0
@@ -376,6 +434,14 @@ def _refusal(candidate: Judged, min_fall: float, max_rise: float, min_criterion_
         return (
             f"it raises the held-out k-step error in {worst_phase} by {-100 * worst_fall:.0f} % "
             "(it trades one phase for another)"
+        )
+    if bags and candidate.bags is not None and candidate.bags.disagrees:
+        agreement = candidate.bags
+        values = ", ".join(f"{value:.4g} +- {sd:.2g} on {bag}" for bag, value, sd in agreement.values)
+        return (
+            f"its fits bag by bag disagree ({agreement.parameter} {values}; chi-square {agreement.chi_square:.1f} "
+            f"on {agreement.degrees}, p = {agreement.p:.2g}): it fits something that differs from drop to drop, "
+            "not a constant of the rig"
         )
     failed = []
     if candidate.criterion > -min_criterion_fall:

@@ -40,6 +40,7 @@ from touchdown_ros.core.selection import (
     Errors,
     Judged,
     SampleMeasures,
+    bag_agreement,
     by_criterion,
     candidate_gates,
     contact_phases,
@@ -48,6 +49,7 @@ from touchdown_ros.core.selection import (
     held_out_errors,
     judge,
     net_of_noise,
+    refusal,
     sample_measures,
     verdict,
     with_candidates,
@@ -439,7 +441,15 @@ def _fit_candidates(
         again, theta = fitted(first.name, thetas[first.name], ", to convergence", alone=False,
                               steps=settings.converge_steps)
         put(replace(again, convergence=first.convergence.then(again.convergence, again.convergence.reason)), theta)
-    for fit in [f for f in ranked(selection) if not f.convergence.diverged][: settings.per_bag]:
+    # Bag by bag: the `per_bag` best, and after them each that passes the held-out tests until one of those agrees
+    # bag by bag, so that the verdict (`core.selection.verdict`) knows the agreement of every candidate it may name.
+    tests, found = {j.name: j for j in judged(selection)}, False
+    for index, fit in enumerate(f for f in ranked(selection) if not f.convergence.diverged):
+        passes = refusal(tests[fit.name], bags=False) is None
+        if index >= settings.per_bag and (found or not passes):
+            if found:
+                break
+            continue
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
             coordinates = effect_coordinates(theta, [fit.name])
@@ -452,6 +462,8 @@ def _fit_candidates(
             sd, _ = _effect_sd(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
+        agreement = bag_agreement(fit.per_bag)
+        found = found or (passes and not (agreement and agreement.disagrees))
     return selection
 
 
@@ -475,7 +487,8 @@ def judged(selection: Selection) -> list[Judged]:
     """Every candidate against the baseline, lowest criterion first (`core.selection.by_criterion`)."""
     base = selection.baseline
     rows = [
-        judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters))
+        judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters),
+              bag_agreement(f.per_bag))
         for f in selection.fits[1:]
     ]
     return by_criterion(rows)
@@ -510,6 +523,7 @@ def candidate_rows(selection: Selection, frols_rows: Sequence[dict[str, Any]]) -
                    if k in fit.partners else {}),
             }
         net = selection.k_step_net(fit)
+        bags = j.bags
         rows.append(
             {
                 "candidate": j.name,
@@ -523,6 +537,9 @@ def candidate_rows(selection: Selection, frols_rows: Sequence[dict[str, Any]]) -
                 "held_out_k_step_rmse_net_m": net.tolist(),
                 "k_step_fall_net": fall(base_net, float(np.linalg.norm(net))),
                 "parameters": parameters,
+                "bag_agreement": None if bags is None else {
+                    "chi_square": bags.chi_square, "degrees": bags.degrees, "p": bags.p, "disagrees": bags.disagrees
+                },
                 "nominal": fit.nominal,
                 "steps": fit.convergence.steps,
                 "converged": fit.convergence.converged,

@@ -10,7 +10,7 @@ import numpy as np
 
 from touchdown_ros.core.diagnostics.breakdown import AXES, PHASES
 from touchdown_ros.core.diagnostics.prediction import comparison
-from touchdown_ros.core.selection import fall_percent
+from touchdown_ros.core.selection import BAG_AGREEMENT_SIGNIFICANCE, fall_percent
 from touchdown_ros.io.config import Config
 from touchdown_ros.workflows.report.diagnosis_figures import plot_diagnosis
 
@@ -383,7 +383,9 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
         + " / ".join(map(_um, held["baseline_k_step_rmse_m"]))
         + " um, net "
         + " / ".join(map(_um, held["baseline_k_step_rmse_net_m"]))
-        + " um).",
+        + " um). Per bag: the candidate fitted to each bag alone, the constants held; the bags disagree where "
+        f"those values differ beyond their standard errors (chi-square, p < {BAG_AGREEMENT_SIGNIFICANCE:g}), and "
+        "such a candidate, fitting something that differs from drop to drop, is not named.",
         "",
         "| candidate | criterion | held-out NLL fall | k-step error fall | net of sensor noise | fitted value +- sd "
         "| per bag |",
@@ -398,6 +400,9 @@ def fitted_markdown(v: dict[str, Any]) -> list[str]:
             for p in row["parameters"].values()
             if p["per_bag"]
         )
+        if row.get("bag_agreement"):
+            agreement = row["bag_agreement"]
+            per_bag += f" ({'disagree' if agreement['disagrees'] else 'agree'}: p = {agreement['p']:.2g})"
         lines.append(
             f"| {row['candidate']} | {row['criterion']:+.1f} | {row['held_out_nll_fall']:+.3f} | "
             f"{fall_percent(row['k_step_fall'])} | {fall_percent(row['k_step_fall_net'])} | {values} | "
