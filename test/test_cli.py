@@ -425,7 +425,12 @@ def test_diagnose_ranks_last_a_candidate_whose_filter_diverges_from_its_start_an
     assert diverged.per_bag == {} and sorted(best.per_bag) == ["exp_01", "exp_11"]
     frols = {"candidates": [{"candidate": n, "err_percent": 1.0} for n in ("axial_load", "contact_exponent")],
              "text": ""}
-    assert [row["candidate"] for row in fitted_verdict(frols, selection)["candidates"]] == [best.name, diverged.name]
+    rows = fitted_verdict(frols, selection)["candidates"]
+    assert [row["candidate"] for row in rows] == [best.name, diverged.name]
+    # the per-bag fits' covariance (one parameter: its sd squared) judges whether the bags agree
+    for bag, covariance in best.per_bag_covariance.items():
+        np.testing.assert_allclose(covariance, [[best.per_bag[bag]["force"][1] ** 2]], rtol=1e-9)
+    assert rows[0]["bag_agreement"]["degrees"] == 1 and rows[1]["bag_agreement"] is None
 
 
 def test_train_then_estimate_with_coefficients(drop_bags, tmp_path):

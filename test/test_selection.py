@@ -175,6 +175,19 @@ def test_a_candidate_whose_fits_bag_by_bag_disagree_is_not_named_and_one_that_ag
     assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 2.5e-7)}}) is None
     assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 0.0)}, "drop_2": {"offset": (3e-5, 1e-7)}}) is None
 
+    # two parameters that act only as their product (the contact angle's tan_beta and k_radial: per bag 0.3493 and
+    # 0.3582, their correlation 1): one difference, counted once; with their sd alone it would count twice
+    bags = {"drop_1": {"tan_beta": (0.35, 0.0035), "k_radial": (3.5e8, 3.5e6)},
+            "drop_2": {"tan_beta": (0.3615, 0.0035), "k_radial": (3.615e8, 3.5e6)}}  # 3.29 sd apart: chi2 3.29^2 / 2
+    product = {b: np.outer([0.0035, 3.5e6], [0.0035, 3.5e6]) for b in bags}
+    once = sel.bag_agreement(bags, product)
+    assert once.degrees == 1 and abs(once.chi_square - 5.40) < 0.01 and not once.disagrees
+    twice = sel.bag_agreement(bags)
+    assert twice.degrees == 2 and abs(twice.chi_square - 10.80) < 0.02 and twice.disagrees
+    # with a full-rank covariance the correlation still counts: uncorrelated, the same as the sd alone
+    assert abs(sel.bag_agreement(thrust, {b: np.diag([29.0, 30.0]) ** 2 if b == "drop_1" else np.diag([39.0, 34.0]) ** 2
+                                          for b in thrust}).chi_square - apart.chi_square) < 1e-9
+
     load = sel.judge("radial_load", (*_errors(2.9, 7e-6), 10), base, apart)
     text = sel.verdict([load])["text"]
     assert text.startswith("unexplained") and "its fits bag by bag disagree (force_x -184.8 +- 29 on drop_1" in text

@@ -196,14 +196,16 @@ BAG_AGREEMENT_SIGNIFICANCE = 0.01
 
 
 class BagAgreement(NamedTuple):
-    """Whether a candidate's fits bag by bag agree within their standard errors: the sum over its parameters
-    of sum_b (value_b - weighted mean)^2 / sd_b^2, chi-square with parameters x (bags - 1) degrees of freedom
-    where the candidate is one constant of the rig."""
+    """Whether a candidate's fits bag by bag agree within their errors: sum_b (theta_b - mean)' C_b^-1
+    (theta_b - mean), the mean weighted by the C_b^-1 (each bag's posterior covariance of the candidate's
+    parameters), chi-square with parameters x (bags - 1) degrees of freedom where the candidate is one constant
+    of the rig. Two parameters that act only together (contact_angle_coupling's tan_beta and k_radial) are
+    counted once: along their product the covariance is the prior's, wide."""
 
     chi_square: float
     degrees: int
     p: float  # the chance of a chi_square this large where the bags agree
-    parameter: str  # the parameter whose values disagree most
+    parameter: str  # the parameter whose values disagree most (by its own marginal chi-square)
     values: tuple[tuple[str, float, float], ...]  # its (bag, value, sd)
 
     @property
@@ -212,27 +214,39 @@ class BagAgreement(NamedTuple):
         return self.p < BAG_AGREEMENT_SIGNIFICANCE
 
 
-def bag_agreement(per_bag: Mapping[str, Mapping[str, tuple[float, float]]]) -> BagAgreement | None:
-    """The agreement of a candidate's fits bag by bag (bag -> parameter -> (value, sd)); None with fewer than two
-    bags or where a standard error is not a positive number."""
+def bag_agreement(
+    per_bag: Mapping[str, Mapping[str, tuple[float, float]]], covariances: Mapping[str, np.ndarray] | None = None
+) -> BagAgreement | None:
+    """The agreement of a candidate's fits bag by bag (bag -> parameter -> (value, sd)), with each bag's covariance
+    of those parameters (bag -> (p, p), in per_bag's order; default diag(sd^2)); None with fewer than two bags or
+    where a value or standard error is not a finite number, or a standard error not positive."""
     bags = list(per_bag)
     if len(bags) < 2:
         return None
-    total, worst, worst_chi = 0.0, None, -1.0
-    for parameter in per_bag[bags[0]]:
-        values = np.array([per_bag[b][parameter][0] for b in bags])
-        sd = np.array([per_bag[b][parameter][1] for b in bags])
-        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(sd)) and np.all(sd > 0.0)):
-            return None
-        weights = sd**-2.0
-        mean = float(np.sum(weights * values) / np.sum(weights))
-        chi = float(np.sum(weights * (values - mean) ** 2))
-        total += chi
-        if chi > worst_chi:
-            worst, worst_chi = parameter, chi
-    degrees = len(per_bag[bags[0]]) * (len(bags) - 1)
+    names = list(per_bag[bags[0]])
+    values = np.array([[per_bag[b][n][0] for n in names] for b in bags])
+    sd = np.array([[per_bag[b][n][1] for n in names] for b in bags])
+    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(sd)) and np.all(sd > 0.0)):
+        return None
+    scale = sd.mean(axis=0)  # the parameters on comparable scales before the inverses
+    covariances = covariances if covariances and all(b in covariances for b in bags) else None
+    scaled_covariances = [
+        (np.asarray(covariances[b]) if covariances else np.diag(sd[i] ** 2)) / np.outer(scale, scale)
+        for i, b in enumerate(bags)
+    ]
+    # a direction the data leave free has no variance in a pinv'd posterior (or a huge one): no weight either way
+    precisions = [np.linalg.pinv(c, hermitian=True) for c in scaled_covariances]
+    scaled = values / scale
+    mean = np.linalg.pinv(sum(precisions), hermitian=True) @ sum(w @ v for w, v in zip(precisions, scaled))
+    chi_square = float(sum((v - mean) @ w @ (v - mean) for w, v in zip(precisions, scaled)))
+    marginal = np.sum((values - np.average(values, axis=0, weights=sd**-2.0)) ** 2 / sd**2, axis=0)
+    worst = names[int(np.argmax(marginal))]
+    rank = min(int(np.linalg.matrix_rank(c, hermitian=True)) for c in scaled_covariances)
+    degrees = rank * (len(bags) - 1)
+    if degrees == 0:
+        return None
     rows = tuple((b, float(per_bag[b][worst][0]), float(per_bag[b][worst][1])) for b in bags)
-    return BagAgreement(total, degrees, float(scipy.stats.chi2.sf(total, degrees)), worst, rows)
+    return BagAgreement(chi_square, degrees, float(scipy.stats.chi2.sf(chi_square, degrees)), worst, rows)
 
 
 class Judged(NamedTuple):

@@ -22,16 +22,17 @@ from touchdown_ros.core.calibration import (
     effect_coordinates,
     effect_scales,
     force_scaled,
-    information_standard_errors,
     log_nominal,
     log_stribeck_of,
     log_support_of,
+    posterior_covariance,
     stage1_flags,
     stage1_information,
     stage1_information_over,
     stage1_model_and_noise,
     stage1_start,
     stage1_value_and_grad,
+    standard_errors_and_correlation,
     strongest_partner,
 )
 from touchdown_ros.core.orbit import candidate_starts
@@ -115,6 +116,8 @@ class CandidateFit:
     parameters: int  # free coordinates of the fit (ln f0, ln q, the candidate's)
     convergence: Convergence
     per_bag: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)  # bag -> parameter -> (value, sd)
+    # bag -> the posterior covariance of the parameters fitted bag by bag (physical units, in the order of per_bag's)
+    per_bag_covariance: dict[str, np.ndarray] = field(default_factory=dict)
     # parameter -> (the fit's other coordinate it is most correlated with, that correlation), from the posterior
     partners: dict[str, tuple[str, float]] = field(default_factory=dict)
 
@@ -459,10 +462,12 @@ def _fit_candidates(
                 objective, coordinates.initial(), settings.steps, settings.tolerance, f"fit {fit.name} on {bag}",
                 stream, bounds=problem.bounds(coordinates),
             )
-            sd, _ = _effect_sd(problem, coordinates, x, batch, fit.name)
+            sd, _, covariance = _effect_posterior(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
             fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
-        agreement = bag_agreement(fit.per_bag)
+            order = [list(sd).index(k) for k in values]
+            fit.per_bag_covariance[bag] = covariance[np.ix_(order, order)]
+        agreement = bag_agreement(fit.per_bag, fit.per_bag_covariance)
         found = found or (passes and not (agreement and agreement.disagrees))
     return selection
 
@@ -473,14 +478,26 @@ def _effect_sd(
     """Standard errors (physical units) of one effect's fitted parameters from the Fisher information of the
     fitted samples of `batch` with the prior, and each parameter's most correlated other coordinate of the fit (a
     constant f0 by its name, e.g. c_Z) with that correlation."""
+    sd, partners, _ = _effect_posterior(problem, coordinates, x, batch, name)
+    return sd, partners
+
+
+def _effect_posterior(
+    problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str
+) -> tuple[dict[str, float], dict[str, tuple[str, float]], np.ndarray]:
+    """`_effect_sd`, and the posterior covariance of the effect's own parameters (physical units, in the order
+    of their standard errors)."""
     information = problem.information(coordinates, x, batch)
     prior_sd = coordinates.prior_sd(problem.config.training.prior_width, problem.clearance_width)
-    sd, correlation = information_standard_errors(information, prior_sd)
+    covariance = posterior_covariance(information, prior_sd)
+    sd, correlation = standard_errors_and_correlation(covariance)
     scales = problem.scales.params[problem.effects.names.index(name)]
     names = coordinates.names
     own = {names[i].split(".", 1)[1]: i for i, n in enumerate(names) if n.startswith(name + ".")}
     partners = {k: strongest_partner(names, correlation, i) for k, i in own.items()} if len(names) > 1 else {}
-    return {k: float(sd[i]) * scales[k] for k, i in own.items()}, partners
+    rows, factors = list(own.values()), np.array([scales[k] for k in own])
+    own_covariance = covariance[np.ix_(rows, rows)] * np.outer(factors, factors)
+    return {k: float(sd[i]) * scales[k] for k, i in own.items()}, partners, own_covariance
 
 
 def judged(selection: Selection) -> list[Judged]:
@@ -488,7 +505,7 @@ def judged(selection: Selection) -> list[Judged]:
     base = selection.baseline
     rows = [
         judge(f.name, (f.fitted, f.held_out, f.parameters), (base.fitted, base.held_out, base.parameters),
-              bag_agreement(f.per_bag))
+              bag_agreement(f.per_bag, f.per_bag_covariance))
         for f in selection.fits[1:]
     ]
     return by_criterion(rows)
