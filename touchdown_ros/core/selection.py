@@ -198,9 +198,9 @@ BAG_AGREEMENT_SIGNIFICANCE = 0.01
 class BagAgreement(NamedTuple):
     """Whether a candidate's fits bag by bag agree within their errors: sum_b (theta_b - mean)' C_b^-1
     (theta_b - mean), the mean weighted by the C_b^-1 (each bag's posterior covariance of the candidate's
-    parameters), chi-square with parameters x (bags - 1) degrees of freedom where the candidate is one constant
-    of the rig. Two parameters that act only together (contact_angle_coupling's tan_beta and k_radial) are
-    counted once: along their product the covariance is the prior's, wide."""
+    parameters), chi-square with (the covariances' rank) x (bags - 1) degrees of freedom where the candidate is
+    one constant of the rig. Two parameters that act only together (contact_angle_coupling's tan_beta and
+    k_radial) are counted once: the posterior has no variance across their product (rank 1)."""
 
     chi_square: float
     degrees: int

@@ -358,7 +358,7 @@ def _fit_candidates(
             if diverged:
                 sd = dict.fromkeys(values, float("nan"))
             else:
-                sd, partners = _effect_sd(problem, coordinates, x, batch, effect.name)
+                sd, partners, _ = _effect_posterior(problem, coordinates, x, batch, effect.name)
         return CandidateFit(
             name=name,
             values=values,
@@ -472,21 +472,13 @@ def _fit_candidates(
     return selection
 
 
-def _effect_sd(
-    problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str
-) -> tuple[dict[str, float], dict[str, tuple[str, float]]]:
-    """Standard errors (physical units) of one effect's fitted parameters from the Fisher information of the
-    fitted samples of `batch` with the prior, and each parameter's most correlated other coordinate of the fit (a
-    constant f0 by its name, e.g. c_Z) with that correlation."""
-    sd, partners, _ = _effect_posterior(problem, coordinates, x, batch, name)
-    return sd, partners
-
-
 def _effect_posterior(
     problem: _Problem, coordinates: Coordinates, x: np.ndarray, batch: Batch, name: str
 ) -> tuple[dict[str, float], dict[str, tuple[str, float]], np.ndarray]:
-    """`_effect_sd`, and the posterior covariance of the effect's own parameters (physical units, in the order
-    of their standard errors)."""
+    """Standard errors (physical units) of one effect's fitted parameters from the Fisher information of the
+    fitted samples of `batch` with the prior, each parameter's most correlated other coordinate of the fit (a
+    constant f0 by its name, e.g. c_Z) with that correlation, and the posterior covariance of the effect's own
+    parameters (physical units, in the order of their standard errors)."""
     information = problem.information(coordinates, x, batch)
     prior_sd = coordinates.prior_sd(problem.config.training.prior_width, problem.clearance_width)
     covariance = posterior_covariance(information, prior_sd)
