@@ -384,3 +384,27 @@ def test_regressors_give_clocked_effects_each_states_time():
         same = library_regressors({"offset": offset}, states[j:j + 1], model, {"offset": {"offset": 0.01 * t}})
         np.testing.assert_allclose(out["drift"][1][j], same["offset"][1][0], rtol=1e-9, atol=1e-9)
     assert np.abs(np.asarray(out["drift"][1][2, 2])) > 1.0  # in contact the drift moves a force
+
+
+def test_an_effects_further_starts_are_checked_and_put_where_the_fit_starts():
+    """A braked rotor's rate: fitted from 0.1 or 0.3 on drawn_1_1's braked drops it ended at -0.06 (the loss of no
+    brake), from 1 or 3 at 0.783 for 0.766 (2026-12-07): its fits start from `Effect.starts` too."""
+    from touchdown_ros.core.calibration import effect_scales, further_starts, stage1_start
+
+    assert fx.LIBRARY["brake_decay"].starts == {"rate": (1.0, 3.0)}
+    with pytest.raises(ValueError, match="starts rate"):
+        fx.Effect("braked", fx.LIBRARY["brake_decay"].function, {"rate": (0.1, "1/s", "")}, bounds={"rate": (0.0, 5.0)},
+                  starts={"rate": (-1.0,)})
+    with pytest.raises(ValueError, match="name no parameter"):
+        fx.Effect("braked", fx.LIBRARY["brake_decay"].function, {"rate": (0.1, "1/s", "")}, starts={"speed": (1.0,)})
+    load, brake = fx.LIBRARY["axial_load"], fx.LIBRARY["brake_decay"]
+    effects = fx.Effects((load, brake), (load.defaults(), brake.defaults()))
+    scales = effect_scales(effects)
+    theta = stage1_start(jnp.zeros(6), effects, scales)
+    starts = further_starts(theta, scales, ["axial_load", "brake_decay"])
+    assert [label for label, _ in starts] == [", from brake_decay.rate 1", ", from brake_decay.rate 3"]
+    for (_, moved), rate in zip(starts, (1.0, 3.0)):
+        index = moved.effects.names.index("brake_decay")
+        assert float(moved.effects.params[index]["rate"]) * scales.params[index]["rate"] == pytest.approx(rate)
+        load = moved.effects.names.index("axial_load")
+        assert moved.effects.params[load] == theta.effects.params[load]

@@ -477,6 +477,22 @@ def effect_coordinates(start: Stage1, names: Sequence[str]) -> Coordinates:
     ))
 
 
+def further_starts(theta: Stage1, scales: Effects, names: Sequence[str]) -> list[tuple[str, Stage1]]:
+    """`theta` with one parameter of one of the effects `names` at each of its further starts (`Effect.starts`;
+    `scales` as the coordinates'), each with a label (", from brake_decay.rate 1")."""
+    starts = []
+    for name in names:
+        index = theta.effects.names.index(name)
+        for parameter, values in theta.effects.effects[index].starts.items():
+            scale = scales.params[index][parameter]
+            starts += [
+                (f", from {name}.{parameter} {value:g}",
+                 theta._replace(effects=theta.effects.with_values({name: {parameter: value / scale}})))
+                for value in values
+            ]
+    return starts
+
+
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
     """A guess of one contact law carried to another: the same spring force and the same damping
     force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the

@@ -33,7 +33,8 @@ carries the weight and the other force effects' static part, `Effect.holds`).
 
 A user-written effect is registered by dotted path ``"package.module:function"``;
 the function carries its parameters as an attribute ``parameters`` (name ->
-(default, unit, description)), optionally ``bounds`` (name -> (low, high)), for a
+(default, unit, description)), optionally ``bounds`` (name -> (low, high)) and ``starts`` (name -> further
+values its fit starts from), for a
 measurement effect ``kind = "measurement"`` and for a clocked one ``clocked = True`` (it takes the time
 since the onset as a fourth argument; an AMB's force that also carries the other force effects' static part
 until it lets go ``holds = True`` as well, with that force (N) as a fifth), or is made by the `effect` decorator
@@ -67,7 +68,9 @@ class Effect:
     """A named term with named physical parameters (name -> (default, unit, description)): a force
     on the rotor (N), a change of the sensor output (m) or the rotor's speed and unbalance angle
     (rad/s, rad), by `kind`; `bounds` (name -> (low, high), in the parameter's unit) keeps a fitted
-    parameter where it means something (a drag is never negative)."""
+    parameter where it means something (a drag is never negative); `starts` (name -> values, in its unit) are
+    further values its fit starts from, the lowest loss kept, where the loss has more than one minimum in it (a
+    braked rotor's rate: its unbalance's phase lags by radians)."""
 
     name: str
     function: EffectFunction
@@ -82,6 +85,7 @@ class Effect:
     # an AMB's force: until it lets go it also carries the other force effects' static part, as its integral action
     # did in levitation: function(xi, params, rig, t, held), held (3,) N (`Effects.static_force`); clocked
     holds: bool = False
+    starts: Mapping[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -97,6 +101,10 @@ class Effect:
                 raise ValueError(f"effect {self.name!r}: bounds {key}: ({low}, {high}) name no parameter or are empty")
             if not low <= self.parameters[key][0] <= high:
                 raise ValueError(f"effect {self.name!r}: the default of {key} lies outside its bounds ({low}, {high})")
+        for key, values in self.starts.items():
+            low, high = self.bounds.get(key, (-math.inf, math.inf))
+            if key not in self.parameters or not all(low <= v <= high for v in values):
+                raise ValueError(f"effect {self.name!r}: starts {key}: {values} name no parameter or leave its bounds")
 
     def defaults(self) -> dict[str, float]:
         return {k: float(v[0]) for k, v in self.parameters.items()}
@@ -120,8 +128,10 @@ def effect(
     contact: bool = False,
     clocked: bool = False,
     holds: bool = False,
+    starts: Mapping[str, tuple[float, ...]] | None = None,
 ):
-    """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `contact`: a
+    """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `starts`: further
+    values a parameter's fit starts from (`Effect.starts`); `contact`: a
     force through the bearing's contact, published as part of the contact force; `clocked`: the function
     takes the time since the drop onset (s) as a fourth argument; `holds`: an AMB's clocked force that also
     carries the other force effects' static part (a fifth argument, `Effect.holds`)."""
@@ -130,7 +140,7 @@ def effect(
         text = description or (function.__doc__ or "")
         return Effect(
             name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact,
-            clocked=clocked, holds=holds,
+            clocked=clocked, holds=holds, starts=dict(starts or {}),
         )
 
     return wrap
@@ -416,6 +426,9 @@ LIBRARY: dict[str, Effect] = {
         Effect(
             "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")},
             _brake_decay.__doc__, kind=SPEED,
+            # from 0.1 or 0.3 a fit to drawn_1_1's braked drops (0.766 1/s) ended at -0.06 with the loss of no
+            # brake; from 1 or 3 at 0.783, 0.094 per sample lower (2026-12-07)
+            starts={"rate": (1.0, 3.0)},
         ),
         *(
             Effect(
@@ -484,6 +497,7 @@ def _lookup(spec: str) -> Effect:
                 attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
                 bounds=dict(getattr(obj, "bounds", {})), contact=bool(getattr(obj, "contact", False)),
                 clocked=bool(getattr(obj, "clocked", False)), holds=bool(getattr(obj, "holds", False)),
+                starts=dict(getattr(obj, "starts", {})),
             )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):

@@ -22,6 +22,7 @@ from touchdown_ros.core.calibration import (
     effect_coordinates,
     effect_scales,
     force_scaled,
+    further_starts,
     log_nominal,
     log_stribeck_of,
     log_support_of,
@@ -329,12 +330,21 @@ def _fit_candidates(
         if effect is not None and alone:
             # The candidate alone first, the model held: moved together from the start, the constants'
             # steep directions (a stiff contact's damping) set the first steps' length and the fit
-            # can stop, converged by the loss's change, before the candidate has moved.
+            # can stop, converged by the loss's change, before the candidate has moved. From the effect's
+            # further starts too (`Effect.starts`), the lowest loss kept.
             alone = effect_coordinates(start, [name])
-            x, _ = minimise(
-                problem.objective(alone, batch), alone.initial(), settings.steps, settings.tolerance,
-                f"fit {name} alone{label}", stream, bounds=problem.bounds(alone),
-            )
+            objective = problem.objective(alone, batch)
+            tried = []
+            for where, theta0 in [("", start), *further_starts(start, problem.scales, [name])]:
+                x, alone_convergence = minimise(
+                    objective, alone.initial(**theta0._asdict()), settings.steps, settings.tolerance,
+                    f"fit {name} alone{label}{where}", stream, bounds=problem.bounds(alone),
+                )
+                tried.append((alone_convergence.final_loss, where, x))
+            loss, where, x = min(tried, key=lambda t: t[0])
+            if where:
+                print(f"[fit {name} alone{label}] kept the start{where}: loss {loss:.7g} against "
+                      f"{tried[0][0]:.7g} from its own", file=stream, flush=True)
             start = alone.theta(x)
         coordinates = Coordinates(start, problem.flags(name))
         objective = problem.objective(coordinates, batch)
