@@ -683,3 +683,22 @@ def test_the_smoothing_factor_never_takes_more_process_noise_than_the_likelihood
     assert error(3.0) < error(1.0)  # a wider search would choose more than the fitted Q here
     chosen = choose_smoothing_scale(model, noise, H, batch, stream=io.StringIO())
     assert chosen.scale <= 1.0 and "x0.02..x1 " in chosen.how, chosen
+
+
+def test_minimise_from_each_start_keeps_the_lowest_end_and_says_which_start_gave_it():
+    """A loss with two minima in one coordinate (a braked rotor's rate: its unbalance's phase lags by radians):
+    from 0.1 the fit ends in the shallow one near 0, from 1 in the deep one at 0.78."""
+    from touchdown_ros.workflows.optimise import minimise_from_each
+
+    def loss(x):
+        shallow, deep = np.exp(-((x[0] + 0.06) / 0.2) ** 2), np.exp(-((x[0] - 0.78) / 0.2) ** 2)
+        grad = 0.2 * 2 * (x[0] + 0.06) / 0.04 * shallow + 2 * (x[0] - 0.78) / 0.04 * deep
+        return float(-0.2 * shallow - deep), np.array([grad])
+
+    log = io.StringIO()
+    x, convergence = minimise_from_each(loss, [("", np.array([0.1])), (", from 1", np.array([1.0]))], 100, 1e-12,
+                                        "rate", log)
+    assert abs(x[0] - 0.78) < 1e-3 and convergence.final_loss < -0.99
+    assert "[rate] kept the start, from 1" in log.getvalue()
+    alone, _ = minimise_from_each(loss, [("", np.array([0.1]))], 100, 1e-12, "rate", io.StringIO())
+    assert abs(alone[0] + 0.06) < 0.05

@@ -60,6 +60,7 @@ from touchdown_ros.workflows.optimise import (
     TrainingError,
     gauss_newton,
     minimise,
+    minimise_from_each,
     require_convergence,
 )
 from touchdown_ros.workflows.progress import STDERR
@@ -497,19 +498,15 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         names = settings.effects_alone_first
         alone = effect_coordinates(coordinates.theta(x0), names)
         label = f"calibrate {law.label}, {', '.join(names)} alone"
-        alone_objective = problem(law, (screen_batch,), alone, screened=True).objective
-        tried = []  # from the file's values, and from each further start of the new effects (`Effect.starts`)
-        for where, theta0 in [("", alone.theta(alone.initial())), *further_starts(alone.theta(alone.initial()),
-                                                                                  scales, names)]:
-            x_where, alone_fit = minimise(
-                alone_objective, alone.initial(**theta0._asdict()), settings.calibration_steps, screen_tolerance,
-                label + where, stream, bounds=bounds_of(alone),
-            )
-            tried.append((alone_fit.final_loss, where, x_where))
-        loss, where, x_alone = min(tried, key=lambda t: t[0])
-        if where:
-            print(f"[{label}] kept the start{where}: loss {loss:.7g} against {tried[0][0]:.7g} from the file's value",
-                  file=stream, flush=True)
+        # from the file's values, and from each further start of the new effects (`Effect.starts`)
+        starts = [("", alone.initial())] + [
+            (where, alone.initial(**theta._asdict()))
+            for where, theta in further_starts(alone.theta(alone.initial()), scales, names)
+        ]
+        x_alone, _ = minimise_from_each(
+            problem(law, (screen_batch,), alone, screened=True).objective, starts, settings.calibration_steps,
+            screen_tolerance, label, stream, bounds=bounds_of(alone),
+        )
         other = minimise(
             objective, coordinates.initial(**alone.theta(x_alone)._asdict()), settings.calibration_steps,
             screen_tolerance, f"{label} first", stream, describe, bounds=bounds_of(coordinates),

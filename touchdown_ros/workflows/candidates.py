@@ -68,7 +68,7 @@ from touchdown_ros.workflows.calibrate import (
     friction_restart,
     friction_restart_values,
 )
-from touchdown_ros.workflows.optimise import Convergence, minimise
+from touchdown_ros.workflows.optimise import Convergence, minimise, minimise_from_each
 from touchdown_ros.workflows.progress import STDERR
 from touchdown_ros.workflows.training_data import TrainingData, place, record_mesh
 
@@ -333,18 +333,12 @@ def _fit_candidates(
             # can stop, converged by the loss's change, before the candidate has moved. From the effect's
             # further starts too (`Effect.starts`), the lowest loss kept.
             alone = effect_coordinates(start, [name])
-            objective = problem.objective(alone, batch)
-            tried = []
-            for where, theta0 in [("", start), *further_starts(start, problem.scales, [name])]:
-                x, alone_convergence = minimise(
-                    objective, alone.initial(**theta0._asdict()), settings.steps, settings.tolerance,
-                    f"fit {name} alone{label}{where}", stream, bounds=problem.bounds(alone),
-                )
-                tried.append((alone_convergence.final_loss, where, x))
-            loss, where, x = min(tried, key=lambda t: t[0])
-            if where:
-                print(f"[fit {name} alone{label}] kept the start{where}: loss {loss:.7g} against "
-                      f"{tried[0][0]:.7g} from its own", file=stream, flush=True)
+            further = further_starts(start, problem.scales, [name])
+            starts = [("", alone.initial())] + [(where, alone.initial(**theta._asdict())) for where, theta in further]
+            x, _ = minimise_from_each(
+                problem.objective(alone, batch), starts, settings.steps, settings.tolerance, f"fit {name} alone{label}",
+                stream, bounds=problem.bounds(alone),
+            )
             start = alone.theta(x)
         coordinates = Coordinates(start, problem.flags(name))
         objective = problem.objective(coordinates, batch)

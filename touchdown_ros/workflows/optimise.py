@@ -256,6 +256,28 @@ def minimise(
     return theta, convergence
 
 
+def minimise_from_each(
+    value_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    starts: Sequence[tuple[str, np.ndarray]],
+    max_steps: int,
+    tolerance: float,
+    label: str,
+    stream=STDERR,
+    bounds: Sequence[tuple[float, float]] | None = None,
+) -> tuple[np.ndarray, Convergence]:
+    """`minimise` from each of `starts` (label, theta0; the first the fit's own start, the others further ones
+    such as `core.calibration.further_starts`'): the lowest end, saying so where a further start gave it."""
+    ends = [
+        (*minimise(value_and_grad, theta0, max_steps, tolerance, label + where, stream, bounds=bounds), where)
+        for where, theta0 in starts
+    ]
+    x, convergence, where = min(ends, key=lambda end: end[1].final_loss)
+    if where != starts[0][0]:
+        print(f"[{label}] kept the start{where}: loss {convergence.final_loss:.7g} against "
+              f"{ends[0][1].final_loss:.7g} from its own", file=stream, flush=True)
+    return x, convergence
+
+
 def gauss_newton(
     terms: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]],
     value: Callable[[np.ndarray], float],
