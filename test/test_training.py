@@ -702,3 +702,14 @@ def test_minimise_from_each_start_keeps_the_lowest_end_and_says_which_start_gave
     assert "[rate] kept the start, from 1" in log.getvalue()
     alone, _ = minimise_from_each(loss, [("", np.array([0.1]))], 100, 1e-12, "rate", io.StringIO())
     assert abs(alone[0] + 0.06) < 0.05
+
+    # minima whose depths differ by less than the tolerance: the own start's end, and nothing said
+    def nearly_even(x):
+        shallow, deep = np.exp(-((x[0] + 0.06) / 0.2) ** 2), np.exp(-((x[0] - 0.78) / 0.2) ** 2)
+        grad = 0.999 * 2 * (x[0] + 0.06) / 0.04 * shallow + 2 * (x[0] - 0.78) / 0.04 * deep
+        return float(-0.999 * shallow - deep), np.array([grad])
+
+    log = io.StringIO()
+    own, _ = minimise_from_each(nearly_even, [("", np.array([0.1])), (", from 0.75", np.array([0.75]))], 100, 1e-2,
+                                "rate", log)
+    assert abs(own[0] + 0.06) < 0.05 and "kept" not in log.getvalue()

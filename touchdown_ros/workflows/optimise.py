@@ -266,12 +266,16 @@ def minimise_from_each(
     bounds: Sequence[tuple[float, float]] | None = None,
 ) -> tuple[np.ndarray, Convergence]:
     """`minimise` from each of `starts` (label, theta0; the first the fit's own start, the others further ones
-    such as `core.calibration.further_starts`'): the lowest end, saying so where a further start gave it."""
+    such as `core.calibration.further_starts`'): the lowest end, saying so where a further start gave it; the own
+    start's where the others end lower by no more than `tolerance` (relative), which stops a fit too."""
     ends = [
         (*minimise(value_and_grad, theta0, max_steps, tolerance, label + where, stream, bounds=bounds), where)
         for where, theta0 in starts
     ]
+    own = ends[0][1].final_loss
     x, convergence, where = min(ends, key=lambda end: end[1].final_loss)
+    if own - convergence.final_loss <= tolerance * max(abs(own), 1.0):
+        x, convergence, where = ends[0]
     if where != starts[0][0]:
         print(f"[{label}] kept the start{where}: loss {convergence.final_loss:.7g} against "
               f"{ends[0][1].final_loss:.7g} from its own", file=stream, flush=True)
