@@ -91,7 +91,9 @@ class FitSettings:
     k: int = 20  # samples ahead of the k-step prediction
     steps: int = 60  # cap on L-BFGS iterations per fit
     tolerance: float = 1.0e-5  # relative loss change that counts as converged
-    per_bag: int = 2  # the best this many candidates are also fitted bag by bag
+    # the best this many candidates are also fitted bag by bag, and after them each that passes the held-out tests
+    # until one of those agrees bag by bag (`core.selection.bag_agreement`)
+    per_bag: int = 2
     from_best: int = 2  # this many runners-up (and the baseline) are fitted again from the best one's constants
     # the baseline and the best this many candidates go on from where `steps` stopped them, until converged or
     # `converge_steps` more: their sizes and the criterion are the optimum's, not the cap's
