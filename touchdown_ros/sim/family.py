@@ -51,19 +51,12 @@ RIG_FILE = "rig.yaml"
 #: Deformation (m) at which a contact of another exponent gives the reference ball's force.
 MATCHED_DEFORMATION = 45e-6
 
-
-@lru_cache(maxsize=1)
-def _reference() -> tuple[float, Mapping[str, float]]:
-    """The reference rig's rotor mass (kg) and its ceramic ball's contact constants, which a draw scales."""
-    config = load_config()
-    return config.rig.mass, simulator_parameters(config).balls["ceramic"]
+_REFERENCE_STIFFNESS = 3.0e11  # N/m^1.5, ceramic radial and axial (config/reference_rig.yaml)
 
 
-def matched_stiffness(exponent: float, reference: float | None = None) -> float:
-    """K (N/m^n) of a K d^n contact with the force of the reference K d^1.5 (N/m^1.5; default: the reference
-    rig's ceramic ball's, radial) at MATCHED_DEFORMATION (4 significant digits)."""
-    if reference is None:
-        reference = _reference()[1]["radial_stiffness"]
+def matched_stiffness(exponent: float, reference: float = _REFERENCE_STIFFNESS) -> float:
+    """K (N/m^n) of a K d^n contact with the force of the reference K d^1.5 at MATCHED_DEFORMATION
+    (4 significant digits)."""
     return float(f"{reference * MATCHED_DEFORMATION ** (1.5 - exponent):.4g}")
 
 
@@ -188,6 +181,13 @@ def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
 
 def _significant(value: float, digits: int = 3) -> float:
     return float(f"{value:.{digits}g}")
+
+
+@lru_cache(maxsize=1)
+def _reference() -> tuple[float, Mapping[str, float]]:
+    """The reference rig's rotor mass (kg) and its ceramic ball's contact constants, which a draw scales."""
+    config = load_config()
+    return config.rig.mass, simulator_parameters(config).balls["ceramic"]
 
 
 def _substeps(overrides: Mapping[str, Any]) -> int:
