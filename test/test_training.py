@@ -685,16 +685,21 @@ def test_the_smoothing_factor_never_takes_more_process_noise_than_the_likelihood
     assert chosen.scale <= 1.0 and "x0.02..x1 " in chosen.how, chosen
 
 
+def _two_wells(shallow: float):
+    """A loss with a well of depth `shallow` at -0.06 and one of depth 1 at 0.78, and its gradient."""
+    def loss(x):
+        near, deep = np.exp(-((x[0] + 0.06) / 0.2) ** 2), np.exp(-((x[0] - 0.78) / 0.2) ** 2)
+        grad = shallow * 2 * (x[0] + 0.06) / 0.04 * near + 2 * (x[0] - 0.78) / 0.04 * deep
+        return float(-shallow * near - deep), np.array([grad])
+    return loss
+
+
 def test_minimise_from_each_start_keeps_the_lowest_end_and_says_which_start_gave_it():
     """A loss with two minima in one coordinate (a braked rotor's rate: its unbalance's phase lags by radians):
     from 0.1 the fit ends in the shallow one near 0, from 1 in the deep one at 0.78."""
     from touchdown_ros.workflows.optimise import minimise_from_each
 
-    def loss(x):
-        shallow, deep = np.exp(-((x[0] + 0.06) / 0.2) ** 2), np.exp(-((x[0] - 0.78) / 0.2) ** 2)
-        grad = 0.2 * 2 * (x[0] + 0.06) / 0.04 * shallow + 2 * (x[0] - 0.78) / 0.04 * deep
-        return float(-0.2 * shallow - deep), np.array([grad])
-
+    loss = _two_wells(0.2)
     log = io.StringIO()
     x, convergence = minimise_from_each(loss, [("", np.array([0.1])), (", from 1", np.array([1.0]))], 100, 1e-12,
                                         "rate", log)
@@ -704,12 +709,7 @@ def test_minimise_from_each_start_keeps_the_lowest_end_and_says_which_start_gave
     assert abs(alone[0] + 0.06) < 0.05
 
     # minima whose depths differ by less than the tolerance: the own start's end, and nothing said
-    def nearly_even(x):
-        shallow, deep = np.exp(-((x[0] + 0.06) / 0.2) ** 2), np.exp(-((x[0] - 0.78) / 0.2) ** 2)
-        grad = 0.999 * 2 * (x[0] + 0.06) / 0.04 * shallow + 2 * (x[0] - 0.78) / 0.04 * deep
-        return float(-0.999 * shallow - deep), np.array([grad])
-
     log = io.StringIO()
-    own, _ = minimise_from_each(nearly_even, [("", np.array([0.1])), (", from 0.75", np.array([0.75]))], 100, 1e-2,
-                                "rate", log)
+    own, _ = minimise_from_each(_two_wells(0.999), [("", np.array([0.1])), (", from 0.75", np.array([0.75]))], 100,
+                                1e-2, "rate", log)
     assert abs(own[0] + 0.06) < 0.05 and "kept" not in log.getvalue()
