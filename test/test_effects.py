@@ -389,7 +389,9 @@ def test_regressors_give_clocked_effects_each_states_time():
 def test_an_effects_further_starts_are_checked_and_put_where_the_fit_starts():
     """A braked rotor's rate: fitted from 0.1 or 0.3 on drawn_1_1's braked drops it ended at -0.06 (the loss of no
     brake), from 1 or 3 at 0.783 for 0.766 (2026-12-07): its fits start from `Effect.starts` too."""
-    from touchdown_ros.core.calibration import effect_scales, further_starts, stage1_start
+    from touchdown_ros.core.calibration import (
+        effect_coordinates, effect_scales, fit_starts, further_starts, stage1_start,
+    )
 
     assert fx.LIBRARY["brake_decay"].starts == {"rate": (1.0, 3.0)}
     with pytest.raises(ValueError, match="starts rate"):
@@ -408,3 +410,8 @@ def test_an_effects_further_starts_are_checked_and_put_where_the_fit_starts():
         assert float(moved.effects.params[index]["rate"]) * scales.params[index]["rate"] == pytest.approx(rate)
         load = moved.effects.names.index("axial_load")
         assert moved.effects.params[load] == theta.effects.params[load]
+    # as a fit's free coordinates: its own start first, then the two further ones (the brake's rate alone free)
+    coordinates = effect_coordinates(theta, ["brake_decay"])
+    points = fit_starts(coordinates, scales, ["brake_decay"])
+    assert [label for label, _ in points] == ["", ", from brake_decay.rate 1", ", from brake_decay.rate 3"]
+    np.testing.assert_allclose([x[0] * scales.params[1]["rate"] for _, x in points], [0.1, 1.0, 3.0])

@@ -493,6 +493,14 @@ def further_starts(theta: Stage1, scales: Effects, names: Sequence[str]) -> list
     return starts
 
 
+def fit_starts(coordinates: Coordinates, scales: Effects, names: Sequence[str]) -> list[tuple[str, np.ndarray]]:
+    """The free coordinates where a fit of the effects `names` starts: its own start (label ""), then each of the
+    effects' further starts (`further_starts`), for `workflows.optimise.minimise_from_each`."""
+    own = coordinates.initial()
+    further = further_starts(coordinates.theta(own), scales, names)
+    return [("", own)] + [(where, coordinates.initial(**theta._asdict())) for where, theta in further]
+
+
 def convert_guess(nominal: Nominal, source: ContactLaw, target: ContactLaw, reference_deformation: float) -> Nominal:
     """A guess of one contact law carried to another: the same spring force and the same damping
     force at the reference deformation d (m): k' = k d^(n - n'), c' = c d^(m - m'), with m the

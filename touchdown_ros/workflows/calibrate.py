@@ -27,7 +27,7 @@ from touchdown_ros.core.calibration import (
     effect_coordinates,
     effect_scales,
     filtered_states,
-    further_starts,
+    fit_starts,
     log_nominal,
     log_stribeck_of,
     log_support_of,
@@ -498,14 +498,9 @@ def calibrate(config: Config, data: TrainingData, ahead: Ahead, stream=STDERR, h
         names = settings.effects_alone_first
         alone = effect_coordinates(coordinates.theta(x0), names)
         label = f"calibrate {law.label}, {', '.join(names)} alone"
-        # from the file's values, and from each further start of the new effects (`Effect.starts`)
-        starts = [("", alone.initial())] + [
-            (where, alone.initial(**theta._asdict()))
-            for where, theta in further_starts(alone.theta(alone.initial()), scales, names)
-        ]
-        x_alone, _ = minimise_from_each(
-            problem(law, (screen_batch,), alone, screened=True).objective, starts, settings.calibration_steps,
-            screen_tolerance, label, stream, bounds=bounds_of(alone),
+        x_alone, _ = minimise_from_each(  # from the file's values and each further start of the new effects
+            problem(law, (screen_batch,), alone, screened=True).objective, fit_starts(alone, scales, names),
+            settings.calibration_steps, screen_tolerance, label, stream, bounds=bounds_of(alone),
         )
         other = minimise(
             objective, coordinates.initial(**alone.theta(x_alone)._asdict()), settings.calibration_steps,

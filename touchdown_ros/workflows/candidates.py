@@ -21,8 +21,8 @@ from touchdown_ros.core.calibration import (
     clearance_width,
     effect_coordinates,
     effect_scales,
+    fit_starts,
     force_scaled,
-    further_starts,
     log_nominal,
     log_stribeck_of,
     log_support_of,
@@ -335,11 +335,9 @@ def _fit_candidates(
             # can stop, converged by the loss's change, before the candidate has moved. From the effect's
             # further starts too (`Effect.starts`), the lowest loss kept.
             alone = effect_coordinates(start, [name])
-            further = further_starts(start, problem.scales, [name])
-            starts = [("", alone.initial())] + [(where, alone.initial(**theta._asdict())) for where, theta in further]
             x, _ = minimise_from_each(
-                problem.objective(alone, batch), starts, settings.steps, settings.tolerance, f"fit {name} alone{label}",
-                stream, bounds=problem.bounds(alone),
+                problem.objective(alone, batch), fit_starts(alone, problem.scales, [name]), settings.steps,
+                settings.tolerance, f"fit {name} alone{label}", stream, bounds=problem.bounds(alone),
             )
             start = alone.theta(x)
         coordinates = Coordinates(start, problem.flags(name))
@@ -455,10 +453,11 @@ def _fit_candidates(
     tests, found = {j.name: j for j in judged(selection)}, False
     for index, fit in enumerate(f for f in ranked(selection) if not f.convergence.diverged):
         passes = refusal(tests[fit.name], bags=False) is None
-        if index >= settings.per_bag and (found or not passes):
+        if index >= settings.per_bag:
             if found:
                 break
-            continue
+            if not passes:
+                continue
         chosen, theta = slots[fit.name][0], thetas[fit.name]
         for record, bag in enumerate(selection.bags):
             coordinates = effect_coordinates(theta, [fit.name])
@@ -470,9 +469,8 @@ def _fit_candidates(
             )
             sd, _, covariance = _effect_posterior(problem, coordinates, x, batch, fit.name)
             values = problem.physical(coordinates.theta(x), fit.name)
-            fit.per_bag[bag] = {k: (values[k], sd[k]) for k in values}
-            order = [list(sd).index(k) for k in values]
-            fit.per_bag_covariance[bag] = covariance[np.ix_(order, order)]
+            fit.per_bag[bag] = {k: (values[k], sd[k]) for k in sd}  # in the covariance's order
+            fit.per_bag_covariance[bag] = covariance
         agreement = bag_agreement(fit.per_bag, fit.per_bag_covariance)
         found = found or (passes and not (agreement and agreement.disagrees))
     return selection

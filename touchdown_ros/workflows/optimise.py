@@ -266,7 +266,7 @@ def minimise_from_each(
     bounds: Sequence[tuple[float, float]] | None = None,
 ) -> tuple[np.ndarray, Convergence]:
     """`minimise` from each of `starts` (label, theta0; the first the fit's own start, the others further ones
-    such as `core.calibration.further_starts`'): the lowest end, saying so where a further start gave it; the own
+    such as `core.calibration.fit_starts`'): the lowest end, saying so where a further start gave it; the own
     start's where the others end lower by no more than `tolerance` (relative), which stops a fit too."""
     ends = [
         (*minimise(value_and_grad, theta0, max_steps, tolerance, label + where, stream, bounds=bounds), where)
