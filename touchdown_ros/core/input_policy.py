@@ -162,11 +162,18 @@ def window_is_clean(etas: np.ndarray, drop_threshold: float) -> bool:
 def threshold_for_window(etas: np.ndarray) -> float | None:
     """The least drop threshold (m) at which a levitated window is clean (`window_is_clean`): its z spread over
     WINDOW_SPREAD_OF_THRESHOLD; None where fewer than CLEAN_WINDOW_FRACTION of its rows are usable."""
+    usable_share, spread = window_spread(etas)
+    return None if usable_share < CLEAN_WINDOW_FRACTION else spread / WINDOW_SPREAD_OF_THRESHOLD
+
+
+def window_spread(etas: np.ndarray) -> tuple[float, float]:
+    """A levitated window's share of usable rows (no NaN; 0 without rows) and the z spread (m, sd) of those (NaN
+    without any)."""
     etas = np.asarray(etas).reshape(-1, 3)
     usable = np.isfinite(etas).all(axis=1)
-    if len(etas) == 0 or float(np.mean(usable)) < CLEAN_WINDOW_FRACTION:
-        return None
-    return float(np.std(etas[usable, 2])) / WINDOW_SPREAD_OF_THRESHOLD
+    if not usable.any():
+        return 0.0 if len(etas) == 0 else float(np.mean(usable)), float("nan")
+    return float(np.mean(usable)), float(np.std(etas[usable, 2]))
 
 
 class Segment(NamedTuple):

@@ -17,7 +17,7 @@ from touchdown_ros.core.estimate import (
     make_estimator,
 )
 from touchdown_ros.core.input_policy import (
-    InputPolicy, RecordInput, split_record, threshold_for_window,
+    InputPolicy, RecordInput, split_record, threshold_for_window, window_spread,
 )
 from touchdown_ros.core.metrics import relative_peak_error, rmse
 from touchdown_ros.core.types import Coefficients
@@ -228,8 +228,7 @@ def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, in
     levitated = first.etas[:window]
     needed = threshold_for_window(levitated)
     if needed is None or needed > drop.threshold or len(first.etas) < window:
-        usable = np.isfinite(levitated).all(axis=1)
-        spread = float(np.std(levitated[usable, 2])) if usable.any() else float("nan")
+        usable_share, spread = window_spread(levitated)
         # a levitated rotor on a noisy sensor (or wobbling under a thrust) may need only a higher threshold
         if needed is not None and not drop.threshold < needed < config.rig.axial_clearance:
             needed = None
@@ -237,7 +236,7 @@ def find_onset(record: RecordInput, config: Config, path: Path) -> tuple[int, in
                  f"{_threshold_words(needed)}" if needed is not None else "")
         raise NoDropError(
             f"{path}: the levitated window (first {drop.levitated_window * 1e3:g} ms) is not clean: "
-            f"{100 * float(np.mean(usable)):.0f} % usable samples (saturated, pinned, missing or in other units), "
+            f"{100 * usable_share:.0f} % usable samples (saturated, pinned, missing or in other units), "
             f"z spread {spread * 1e6:.3g} um (a third of drop_detection.threshold at most): no levitated reference"
             + noisy,
             threshold=needed,
