@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from touchdown_ros.workflows.calibrate import aic, bic, damping_restart, friction_restart
+from touchdown_ros.workflows.calibrate import DAMPING_RESTART_EVIDENCE, aic, bic, damping_restart, friction_restart
 from touchdown_ros.cli import EXIT_BAD_INPUT, main
 from touchdown_ros.core.calibration import (
     convert_guess,
@@ -532,28 +532,47 @@ def test_calibration_says_when_the_friction_came_out_above_any_bearing_contacts(
     assert "effects.active" not in said and "touchdown diagnose" in said
 
 
-def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
-    """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at
-    the rig's: the restart moves c_R up by the factor that lowers the loss most and keeps c_Z,
-    whose loss every factor raises."""
-    import io
-
-    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
-    rig_c_R = 3e13
-
+def _damping_plateau(rig_c_R: float = 3e13):
+    """A loss flat in ln c_R far below the rig's damping (its force negligible there), lowest at the rig's, and one
+    every change of c_Z raises."""
     def loss_of(x):
         u = np.exp(x[1]) / rig_c_R
         return float(0.5 * u - np.log1p(u) + 0.1 * (x[4] - 1.0) ** 2)
 
+    names = ["k_R", "c_R", "mu", "k_Z", "c_Z", "k_ZR"]
     x = np.array([np.log(1.5e12), np.log(4e11), np.log(0.1), np.log(1.5e12), 1.0, np.log(0.05)])
+    return loss_of, names, x
+
+
+def test_damping_restart_leaves_the_plateau_below_the_rigs_damping():
+    """The restart moves c_R up by the factor that lowers the loss most and keeps c_Z, whose loss every factor
+    raises, when -2 ln L (here 1000 samples' worth of the loss) falls by more than the evidence it asks."""
+    import io
+
+    loss_of, names, x = _damping_plateau()
     log = io.StringIO()
-    restarted = damping_restart(loss_of, names, x, loss_of(x), log)
-    assert restarted is not None and "c_R x100" in log.getvalue()
+    restarted = damping_restart(loss_of, names, x, loss_of(x), log, lambda J: 1000.0 * J)
+    assert restarted is not None and "c_R x100 lowers" in log.getvalue(), log.getvalue()
     assert np.exp(restarted[1]) == pytest.approx(4e13)  # x10 and x1000 lower the loss less
     np.testing.assert_array_equal(np.delete(restarted, 1), np.delete(x, 1))
     assert loss_of(restarted) < loss_of(x)
     # no factor lowers the loss there
-    assert damping_restart(loss_of, names, restarted, loss_of(restarted), io.StringIO()) is None
+    assert damping_restart(loss_of, names, restarted, loss_of(restarted), io.StringIO(), lambda J: 1000.0 * J) is None
+
+
+def test_damping_restart_is_not_taken_on_less_evidence_than_it_asks():
+    """The same plateau seen by few samples: the best factor lowers -2 ln L by less than DAMPING_RESTART_EVIDENCE,
+    so the fit stays where it stopped (the prior holds c_R) and the log says by how much it would have."""
+    import io
+
+    loss_of, names, x = _damping_plateau()
+    gain_per_sample = loss_of(x) - loss_of(x + np.eye(len(x))[1] * np.log(100.0))
+    samples = 0.5 * DAMPING_RESTART_EVIDENCE / gain_per_sample
+    log = io.StringIO()
+    assert damping_restart(loss_of, names, x, loss_of(x), log, lambda J: samples * J) is None
+    assert "c_R x100 lowers -2 ln L by 5 only" in log.getvalue() and "not taken" in log.getvalue(), log.getvalue()
+    more = 2.5 * samples  # 12.5 > 10: taken
+    assert damping_restart(loss_of, names, x, loss_of(x), io.StringIO(), lambda J: more * J) is not None
 
 
 def test_friction_restart_leaves_a_low_friction_basin():
