@@ -239,10 +239,10 @@ HIDDEN_LIBRARY_EFFECTS = {
         lambda truth: 3.0e-5, lambda p: p["offset"], 0.1, [0], 0.5,
     ),
     "contact angle": (
-        # tan_beta and the effect's own k_radial act only as their product (N/m of axial force per
-        # radial deformation): the product is what the drops tell
+        # tan(beta) times the model's own normal force in the bore (until 2026-12-07 tan_beta k_radial d, a linear
+        # force whose two parameters acted only as their product)
         "linear_spring", {"contact_angle_tan": 0.2}, "contact_angle_coupling",
-        lambda truth: 0.2 * truth.radial_stiffness, lambda p: p["tan_beta"] * p["k_radial"], 0.1, [2], 0.5,
+        lambda truth: truth.contact_angle_tan, lambda p: p["tan_beta"], 0.1, [2], 0.5,
     ),
     "cross-coupled stiffness": (
         # stage 1 ran down to almost no friction (mu 0.002 for 0.05) and q came out +12-18 %; the friction restart
@@ -502,16 +502,16 @@ def test_the_report_says_how_tightly_the_drops_pin_the_named_effects_size():
         "Its size moves with another term of the fit: c_axial with c_Z, the face contact's damping (posterior "
         "correlation -0.75). The drops tell such a pair's joint effect better than either, and where the model's form "
         "of the one differs from the rig's, the other's size makes up for it.")
-    angle = {"candidate": "contact_angle_coupling", "fitted": True, "parameters": {
-        "k_radial": {**parameter(6.4e8, 6e6), "unit": "N/m",
-                     "correlated_with": {"coordinate": "contact_angle_coupling.tan_beta", "r": 1.0}},
-        "tan_beta": {**parameter(0.64, 0.006), "unit": "1",
-                     "correlated_with": {"coordinate": "contact_angle_coupling.k_radial", "r": 1.0}},
+    magnet = {"candidate": "magnetic_stiffness", "fitted": True, "parameters": {
+        "k_radial": {**parameter(6.4e5, 6e3), "unit": "N/m",
+                     "correlated_with": {"coordinate": "magnetic_stiffness.k_axial", "r": 0.97}},
+        "k_axial": {**parameter(9.0e5, 9e3), "unit": "N/m",
+                    "correlated_with": {"coordinate": "magnetic_stiffness.k_radial", "r": 0.97}},
     }}
-    assert how_well_sized({"bags": {"a": {}}, "verdict": {**verdict, "best": "contact_angle_coupling",
-                                                          "candidates": [angle]}}) == (
-        "How tightly 1 drop pins its size (95 % intervals): k_radial 6.4e+08 N/m +- 1.8 %, tan_beta 0.64 +- 1.8 %. "
-        "Its size moves with another term of the fit: k_radial with its tan_beta (posterior correlation +1.00). The "
+    assert how_well_sized({"bags": {"a": {}}, "verdict": {**verdict, "best": "magnetic_stiffness",
+                                                          "candidates": [magnet]}}) == (
+        "How tightly 1 drop pins its size (95 % intervals): k_radial 6.4e+05 N/m +- 1.8 %, k_axial 9e+05 N/m +- 2 %. "
+        "Its size moves with another term of the fit: k_radial with its k_axial (posterior correlation +0.97). The "
         "drops tell such a pair's joint effect better than either, and where the model's form of the one differs from "
         "the rig's, the other's size makes up for it.")
 

@@ -176,7 +176,7 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
         torque = jnp.zeros((), xi.dtype)
     effects = getattr(model, "effects", None)
     if effects and effects.act_through_contact():  # static: a force through the contact (a contact angle)
-        extra = effects.force(xi, model.rig, contact=True)
+        extra = effects.force(xi, model.rig, contact=True, normal=jnp.stack([c.F_nR, c.F_zZ]))
         F_n = F_n - (extra[0] * c.cos_a + extra[1] * c.sin_a)
         F_t = F_t + extra[0] * c.sin_a - extra[1] * c.cos_a
         F_z = F_z + extra[2]
@@ -190,6 +190,13 @@ def contact_forces(model: Model, xi: Array) -> ContactForces:
         axial_contact=c.axial_deformation > 0.0,  # eq. 7 criterion z >= -z0 is "no contact"
         ring_torque=torque,
     )
+
+
+def normal_forces(model: Model, xi: Array) -> Array:
+    """(F_nR, F_zZ), N: the model's normal contact forces at xi in the bore and on the face (eq. 6a, 8c; what a
+    force through the contact may read, `Effect.normal`)."""
+    c = _contact_state(model, xi)
+    return jnp.stack([c.F_nR, c.F_zZ])
 
 
 def contact_force_xyz(forces: ContactForces) -> Array:

@@ -16,7 +16,9 @@ parameters and ``rig`` the `Rig`. Its `kind` says where it acts:
 A `clocked` effect is a function of the time since the drop onset as well,
 ``function(xi, params, rig, t)`` with t in s (the step's time in the filter's scan and in each
 RK4 stage, `dynamics.at_time`): a term that starts at the drop, such as the AMB's force as it
-lets go (`amb_release`).
+lets go (`amb_release`). A force through the contact may read the model's own normal contact forces
+(`Effect.normal`): the contact angle's axial push is tan(beta) times the bore's normal force, whatever the
+contact law, so tan(beta) is the one parameter and means the same on every rig.
 
 `Effects` is the JAX container held by `Model.effects`: the functions (and names) are
 static aux data, the parameter values are traced children, so jit/grad/vmap see the
@@ -37,8 +39,9 @@ the function carries its parameters as an attribute ``parameters`` (name ->
 values its fit starts from), for a
 measurement effect ``kind = "measurement"`` and for a clocked one ``clocked = True`` (it takes the time
 since the onset as a fourth argument; an AMB's force that also carries the other force effects' static part
-until it lets go ``holds = True`` as well, with that force (N) as a fifth), or is made by the `effect` decorator
-below.
+until it lets go ``holds = True`` as well, with that force (N) as a fifth; a force through the contact
+``contact = True``, and if it reads the model's normal contact forces (F_nR, F_zZ) there ``normal = True``, with
+them (N) as a fourth), or is made by the `effect` decorator below.
 """
 from __future__ import annotations
 
@@ -86,6 +89,9 @@ class Effect:
     # did in levitation: function(xi, params, rig, t, held), held (3,) N (`Effects.static_force`); clocked
     holds: bool = False
     starts: Mapping[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
+    # a force through the contact that reads the model's own normal contact forces there: function(xi, params, rig,
+    # normal), normal (2,) N: (F_nR, F_zZ), the bore's and the face's (a contact angle: tan(beta) F_nR)
+    normal: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -96,6 +102,8 @@ class Effect:
             raise ValueError(f"effect {self.name!r}: only a force acts through the contact, not a {self.kind} effect")
         if self.contact and self.clocked:
             raise ValueError(f"effect {self.name!r}: a force through the contact cannot be clocked")
+        if self.normal and not self.contact:
+            raise ValueError(f"effect {self.name!r}: only a force through the contact reads its normal forces")
         for key, (low, high) in self.bounds.items():
             if key not in self.parameters or not low < high:
                 raise ValueError(f"effect {self.name!r}: bounds {key}: ({low}, {high}) name no parameter or are empty")
@@ -110,10 +118,16 @@ class Effect:
         return {k: float(v[0]) for k, v in self.parameters.items()}
 
     def __call__(
-        self, xi: Array, params: Mapping[str, Array], rig, t: Array | float = 0.0, held: Array | None = None
+        self, xi: Array, params: Mapping[str, Array], rig, t: Array | float = 0.0, held: Array | None = None,
+        normal: Array | None = None,
     ) -> Array:
         """The effect at state xi and time t (s since the drop onset; only a clocked effect reads it); `held`
-        (3,) N: the static force an effect that `holds` carries beside the weight (none if not given)."""
+        (3,) N: the static force an effect that `holds` carries beside the weight (none if not given); `normal`
+        (2,) N: the model's normal contact forces (F_nR, F_zZ) at xi, what an effect that reads them needs."""
+        if self.normal:
+            if normal is None:
+                raise ValueError(f"effect {self.name!r} reads the model's normal contact forces: none were given")
+            return self.function(xi, params, rig, normal)
         if self.holds:
             return self.function(xi, params, rig, t, jnp.zeros(3, xi.dtype) if held is None else held)
         return self.function(xi, params, rig, t) if self.clocked else self.function(xi, params, rig)
@@ -129,18 +143,20 @@ def effect(
     clocked: bool = False,
     holds: bool = False,
     starts: Mapping[str, tuple[float, ...]] | None = None,
+    normal: bool = False,
 ):
     """Decorator making a plain function into an `Effect` of `kind` (usable by dotted path); `starts`: further
     values a parameter's fit starts from (`Effect.starts`); `contact`: a
     force through the bearing's contact, published as part of the contact force; `clocked`: the function
     takes the time since the drop onset (s) as a fourth argument; `holds`: an AMB's clocked force that also
-    carries the other force effects' static part (a fifth argument, `Effect.holds`)."""
+    carries the other force effects' static part (a fifth argument, `Effect.holds`); `normal`: a force through the
+    contact that takes the model's normal contact forces (F_nR, F_zZ), N, as a fourth argument."""
 
     def wrap(function: EffectFunction) -> Effect:
         text = description or (function.__doc__ or "")
         return Effect(
             name, function, dict(parameters), text, kind=kind, bounds=dict(bounds or {}), contact=contact,
-            clocked=clocked, holds=holds, starts=dict(starts or {}),
+            clocked=clocked, holds=holds, starts=dict(starts or {}), normal=normal,
         )
 
     return wrap
@@ -223,14 +239,16 @@ class Effects:
         return any(e.kind == kind for e in self.effects)
 
     def _sum(
-        self, kind: str, xi: Array, rig, contact: bool | None = None, holding: bool | None = None
+        self, kind: str, xi: Array, rig, contact: bool | None = None, holding: bool | None = None,
+        normal: Array | None = None,
     ) -> Array:
-        """`contact`, `holding`: only the effects with that `Effect.contact`, `Effect.holds` (None: any)."""
+        """`contact`, `holding`: only the effects with that `Effect.contact`, `Effect.holds` (None: any); `normal`:
+        the model's normal contact forces at xi (`Effect.normal`)."""
         total = jnp.zeros(3, dtype=xi.dtype)
         for e, p, gate in zip(self.effects, self.params, self.gates):
             if e.kind == kind and contact in (None, e.contact) and holding in (None, e.holds):
                 held = self.static_force(xi, rig) if e.holds else None
-                total = total + gate * jnp.asarray(e(xi, p, rig, self.time, held), dtype=xi.dtype)
+                total = total + gate * jnp.asarray(e(xi, p, rig, self.time, held, normal), dtype=xi.dtype)
         return total
 
     def static_force(self, xi: Array, rig) -> Array:
@@ -242,10 +260,11 @@ class Effects:
         at_rest = (rest.at[THETA].set(angle) for angle in angles)
         return sum(self._sum(FORCE, state, rig, contact=False, holding=False) for state in at_rest) / HOLD_ANGLES
 
-    def force(self, xi: Array, rig, contact: bool | None = None) -> Array:
+    def force(self, xi: Array, rig, contact: bool | None = None, normal: Array | None = None) -> Array:
         """Sum of the active force effects (3,), N, each times its gate; `contact` True: only those through
-        the bearing's contact (`Effect.contact`), False: only the others."""
-        return self._sum(FORCE, xi, rig, contact)
+        the bearing's contact (`Effect.contact`), False: only the others; `normal` (2,) N: the model's normal
+        contact forces (F_nR, F_zZ) at xi, for the effects that read them (`Effect.normal`)."""
+        return self._sum(FORCE, xi, rig, contact, normal=normal)
 
     def act_through_contact(self) -> bool:
         """Whether a force through the bearing's contact is among them (static: decides what is traced)."""
@@ -275,12 +294,6 @@ def gates_for(effects: Effects, conditions: Mapping[str, str]) -> tuple[float, .
 
 
 # ---------------------------------------------------------------- library
-
-def _radial(xi, rig):
-    x, y = xi[X], xi[Y]
-    r = jnp.sqrt(x * x + y * y + 1e-30)
-    return r, x / r, y / r
-
 
 def _axial_load(xi, p, rig):
     """Constant downward axial load (e.g. a test-rig load cell), N."""
@@ -318,13 +331,11 @@ def _viscous_friction(xi, p, rig):
     return jnp.stack([-p["c_radial"] * xi[XDOT], -p["c_radial"] * xi[YDOT], -p["c_axial"] * xi[ZDOT]])
 
 
-def _contact_angle_coupling(xi, p, rig):
-    """Axial force from radial contact through the contact angle: F_z = tan(beta) * F_n (F_n ~ k d)."""
-    r, c, s = _radial(xi, rig)
-    d = r - rig.radial_clearance
-    f_n = jnp.where(d > 0.0, p["k_radial"] * d, 0.0)
+def _contact_angle_coupling(xi, p, rig, normal):
+    """Axial force from radial contact through the contact angle: F_z = tan(beta) F_nR, the model's own
+    normal force in the bore (N)."""
     zero = 0.0 * xi[Z]
-    return jnp.stack([zero, zero, p["tan_beta"] * f_n])
+    return jnp.stack([zero, zero, p["tan_beta"] * normal[0]])
 
 
 def _brake_decay(xi, p, rig):
@@ -416,12 +427,10 @@ LIBRARY: dict[str, Effect] = {
         Effect(
             "contact_angle_coupling",
             _contact_angle_coupling,
-            {
-                "tan_beta": (0.1, "1", "tangent of the contact angle"),
-                "k_radial": (1.0e8, "N/m", "radial contact stiffness"),
-            },
+            {"tan_beta": (0.1, "1", "tangent of the contact angle")},
             _contact_angle_coupling.__doc__,
             contact=True,
+            normal=True,
         ),
         Effect(
             "brake_decay", _brake_decay, {"rate": (0.1, "1/s", "relative speed decay per second")},
@@ -497,7 +506,7 @@ def _lookup(spec: str) -> Effect:
                 attr, obj, dict(parameters), obj.__doc__ or "", kind=getattr(obj, "kind", FORCE),
                 bounds=dict(getattr(obj, "bounds", {})), contact=bool(getattr(obj, "contact", False)),
                 clocked=bool(getattr(obj, "clocked", False)), holds=bool(getattr(obj, "holds", False)),
-                starts=dict(getattr(obj, "starts", {})),
+                starts=dict(getattr(obj, "starts", {})), normal=bool(getattr(obj, "normal", False)),
             )
         raise ValueError(f"effect {spec!r} is neither an Effect nor a function")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
@@ -510,10 +519,12 @@ def _lookup(spec: str) -> Effect:
 
 
 def regressors(
-    effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None, t: Array | float = 0.0
+    effect_: Effect, xi: Array, rig, values: Mapping[str, float] | None = None, t: Array | float = 0.0,
+    normal: Array | None = None,
 ) -> Array:
-    """d function / d parameters at xi (and t s after the onset): (3, n_params), N (force) or m (measurement)
-    per parameter unit; (2, n_params) for a speed effect (rad/s and rad per parameter unit)."""
+    """d function / d parameters at xi (and t s after the onset; `normal`, the model's normal contact forces there,
+    for an effect that reads them): (3, n_params), N (force) or m (measurement) per parameter unit; (2, n_params)
+    for a speed effect (rad/s and rad per parameter unit)."""
     p0 = {k: jnp.asarray(v, dtype=xi.dtype) for k, v in (values or effect_.defaults()).items()}
-    jac = jax.jacfwd(lambda p: effect_(xi, p, rig, t))(p0)
+    jac = jax.jacfwd(lambda p: effect_(xi, p, rig, t, None, normal))(p0)
     return jnp.stack([jac[k] for k in p0], axis=-1)

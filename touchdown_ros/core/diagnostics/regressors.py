@@ -12,7 +12,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 
 from touchdown_ros.core.diagnostics.missing_force import model_force
-from touchdown_ros.core.dynamics import at_time, phi, rotor_speed
+from touchdown_ros.core.dynamics import at_time, normal_forces, phi, rotor_speed
 from touchdown_ros.core.effects import FORCE, MEASUREMENT, SPEED, Effect, Effects
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, Model
 
@@ -60,7 +60,8 @@ def force_equivalent(
     """
     rig, mass = model.rig, model.rig.mass
     if effect.kind == FORCE:  # t: s after the drop onset, what a clocked effect reads
-        return jnp.asarray(effect(xi, params, rig, t), xi.dtype)
+        normal = normal_forces(model, xi) if effect.normal else None  # static
+        return jnp.asarray(effect(xi, params, rig, t, None, normal), xi.dtype)
     if effect.kind == SPEED:
         def acceleration(effects: Effects) -> Array:
             moved = model._replace(effects=effects)
