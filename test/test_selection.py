@@ -175,8 +175,9 @@ def test_a_candidate_whose_fits_bag_by_bag_disagree_is_not_named_and_one_that_ag
     assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 2.5e-7)}}) is None
     assert sel.bag_agreement({"drop_1": {"offset": (3e-5, 0.0)}, "drop_2": {"offset": (3e-5, 1e-7)}}) is None
 
-    # two parameters that act only as their product (the contact angle's tan_beta and k_radial: per bag 0.3493 and
-    # 0.3582, their correlation 1): one difference, counted once; with their sd alone it would count twice
+    # two parameters that act only as their product (the contact angle's tan_beta and k_radial until 2026-12-07: per
+    # bag 0.3493 and 0.3582, their correlation 1): one difference, counted once; with their sd alone it would count
+    # twice
     bags = {"drop_1": {"tan_beta": (0.35, 0.0035), "k_radial": (3.5e8, 3.5e6)},
             "drop_2": {"tan_beta": (0.3615, 0.0035), "k_radial": (3.615e8, 3.5e6)}}  # 3.29 sd apart: chi2 3.29^2 / 2
     product = {b: np.outer([0.0035, 3.5e6], [0.0035, 3.5e6]) for b in bags}

@@ -199,8 +199,9 @@ class BagAgreement(NamedTuple):
     """Whether a candidate's fits bag by bag agree within their errors: sum_b (theta_b - mean)' C_b^-1
     (theta_b - mean), the mean weighted by the C_b^-1 (each bag's posterior covariance of the candidate's
     parameters), chi-square with (the covariances' rank) x (bags - 1) degrees of freedom where the candidate is
-    one constant of the rig. Two parameters that act only together (contact_angle_coupling's tan_beta and
-    k_radial) are counted once: the posterior has no variance across their product (rank 1)."""
+    one constant of the rig. Two parameters that act only together (a user's force a k d, or the library's contact
+    angle before it read the model's normal force: tan_beta k_radial d) are counted once: the posterior has no
+    variance across their product (rank 1)."""
 
     chi_square: float
     degrees: int
