@@ -241,7 +241,6 @@ def run_case(
     true_row = rows.get(case.effect) if case.effect else None
     judged = true_row if true_row and true_row["fitted"] else named
     fitted = {k: v["value"] for k, v in judged["parameters"].items()} if judged is true_row and judged else {}
-    fitted = fitted or {}
     axes = ["xyz".index(a) for a in case.axes]
     before = np.asarray(verdict["held_out"]["baseline_k_step_rmse_m"])
     after = np.asarray(judged["held_out_k_step_rmse_m"]) if judged else before

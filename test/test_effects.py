@@ -8,7 +8,7 @@ import pytest
 
 from touchdown_ros.core import effects as fx
 from touchdown_ros.core.dynamics import phi
-from touchdown_ros.core.types import THETA, X
+from touchdown_ros.core.types import THETA, X, Z
 from touchdown_ros.io.config import load_config
 
 
@@ -26,6 +26,13 @@ def _contact_push(xi, p, rig):
 
 
 _contact_push.parameters, _contact_push.contact = {"F": (100.0, "N", "push along x")}, True
+
+
+@fx.effect("face_share", {"share": (0.1, "1", "share of the face's normal force pushed back up")}, contact=True,
+           normal=True)
+def _face_share(xi, p, rig, normal):
+    """A user-written force through the contact that reads the model's normal forces: share x F_zZ along z."""
+    return jnp.stack([0.0 * xi[0], 0.0 * xi[0], p["share"] * normal[1]])
 
 
 def _user_ramp(xi, p, rig, t):
@@ -83,6 +90,28 @@ def test_a_force_through_the_contact_is_part_of_the_contact_force_and_counted_on
     np.testing.assert_allclose([pushed.F_x - bare.F_x, pushed.F_n - bare.F_n], [100.0, -100.0], atol=1e-9)
     with pytest.raises(ValueError, match="only a force acts through the contact"):
         fx.Effect("bad", _contact_push, _contact_push.parameters, kind=fx.MEASUREMENT, contact=True)
+
+
+def test_a_user_force_through_the_contact_reads_the_models_normal_forces_and_diagnose_sees_the_same():
+    """An effect with `normal` gets (F_nR, F_zZ) of the model at the state: in the filter's contact force and in the
+    force diagnose's regressors use; only a force through the contact may read them."""
+    from touchdown_ros.core.diagnostics.regressors import force_equivalent
+    from touchdown_ros.core.dynamics import contact_forces, normal_forces
+
+    model = load_config().model()
+    rig = model.rig
+    xi = jnp.zeros(model.law.state_size).at[Z].set(-rig.axial_clearance - 8e-6)  # 8 um into the face
+    face = normal_forces(model, xi)
+    assert float(face[0]) == 0.0 and float(face[1]) > 1000.0
+    share = fx.resolve(f"{__name__}:_face_share")
+    assert share.normal and share.contact
+    bare = contact_forces(model, xi)
+    moved = contact_forces(model._replace(effects=fx.Effects((share,), ({"share": 0.1},))), xi)
+    np.testing.assert_allclose(moved.F_z - bare.F_z, 0.1 * face[1], rtol=1e-9)
+    np.testing.assert_allclose(force_equivalent(share, xi, {"share": 0.1}, model, None), [0.0, 0.0, 0.1 * face[1]],
+                               rtol=1e-9)
+    with pytest.raises(ValueError, match="only a force through the contact reads its normal forces"):
+        fx.Effect("bad", _face_share.function, _face_share.parameters, normal=True)
 
 
 def test_dotted_path_effect_is_jittable_and_differentiable():
