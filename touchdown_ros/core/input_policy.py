@@ -172,7 +172,7 @@ def window_spread(etas: np.ndarray) -> tuple[float, float]:
     etas = np.asarray(etas).reshape(-1, 3)
     usable = np.isfinite(etas).all(axis=1)
     if not usable.any():
-        return 0.0 if len(etas) == 0 else float(np.mean(usable)), float("nan")
+        return 0.0, float("nan")
     return float(np.mean(usable)), float(np.std(etas[usable, 2]))
 
 

@@ -49,6 +49,7 @@ from touchdown_ros.core.calibration import (
 from touchdown_ros.core.dynamics import normal_force
 from touchdown_ros.core.effects import Effects
 from touchdown_ros.core.orbit import describe_starts, effects_from_orbits
+from touchdown_ros.core.selection import COLLINEAR_MARGIN
 from touchdown_ros.core.training import Batch, sample_errors, with_state_size
 from touchdown_ros.core.types import EXACT_PAIR, PARAMETER_NAMES, STATE_SIZE, ContactLaw, FilterNoise, Model, Nominal
 from touchdown_ros.io.config import Config
@@ -1122,13 +1123,13 @@ def support_starts(guess: ContactLaw, model: Model, noise: FilterNoise, h: float
 #: factors below 1.
 DAMPING_RESTART_FACTORS = (10.0, 100.0, 1000.0)
 
-#: The fall of -2 ln L on the screening bags a damping restart must bring to be taken (10: "very strong"
-#: evidence, as `core.selection.COLLINEAR_MARGIN`). The restart jumps along a direction in which the loss
+#: The fall of -2 ln L on the screening bags a damping restart must bring to be taken: the workbench's bar for
+#: "very strong" evidence (10). The restart jumps along a direction in which the loss
 #: is nearly flat; a jump that gains less is one the drops cannot tell from where the fit stopped, and
 #: there the prior holds the damping. drawn_1_2 (rolling training drops, bouncing held-out ones): c_R x10
 #: gained 8.2, the refinement took c_R on to 12.5x the rig's at +-75 %, and the held-out drops were
 #: tracked 2.2-3.6x the noise where the model stayed on the wall; stiff_quiet's restart gained 250.
-DAMPING_RESTART_EVIDENCE = 10.0
+DAMPING_RESTART_EVIDENCE = COLLINEAR_MARGIN
 
 
 def damping_restart(
