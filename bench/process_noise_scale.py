@@ -81,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
             model_error = model_force_error(model, noise, calibrated.sample_period, batch, io.StringIO())
             scaled = replace(scaled, force_model_variance=model_error.variance)
             estimator = estimator_for(scaled, loaded.coeffs, loaded.effects)
-            rows = [bag_figures(estimate_bag(scaled, bag, estimator), config.noise_rms) for bag in test]
-            fits = [estimate_bag(scaled, bag, estimator).estimate for bag in train]
+            results = {bag: estimate_bag(scaled, bag, estimator, fit_noise=False) for bag in bags}  # Q x factor alone
+            rows = [bag_figures(results[bag], config.noise_rms) for bag in test]
+            fits = [results[bag].estimate for bag in train]
             nll, loo = criteria(fits, np.asarray(noise.measurement))
 
             def worst(key: str) -> float:

@@ -278,11 +278,15 @@ def make_estimator(
     than passing it as an argument); compilation happens once per record length.
     `estimate(..., coeffs=C, effects=E)` runs other coefficients (and effect parameters) of the
     same rig through a second compiled function that takes them as arguments (one compilation
-    for many sets).
+    for many sets). `process_scale` (n,): factors on the diagonal of Q for one record (default 1);
+    `estimate.innovations(...)` runs the filter alone and returns its innovations and their covariances.
     """
 
-    def run(model: Model, initial: Belief, etas: Array, start_time: Array):
-        outputs: StepOutput = ekf(model, noise, sample_period, initial, etas, start_time=start_time)
+    def scaled(process_scale: Array) -> FilterNoise:
+        return noise._replace(process=jnp.asarray(noise.process) * process_scale)
+
+    def run(model: Model, initial: Belief, etas: Array, start_time: Array, process_scale: Array):
+        outputs: StepOutput = ekf(model, scaled(process_scale), sample_period, initial, etas, start_time=start_time)
         smoothed = rts_smoother(outputs)
         nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
         variance = force_model_variance(model, noise, sample_period) if model_variance is None else model_variance
@@ -296,12 +300,33 @@ def make_estimator(
             nis,
         )
 
-    run_folded = jax.jit(lambda initial, etas, start_time: run(model, initial, etas, start_time))
-    run_with_coeffs = jax.jit(
-        lambda coeffs, effects, initial, etas, start_time: run(
-            model._replace(coeffs=coeffs, effects=effects), initial, etas, start_time
-        )
-    )
+    def filter_only(model: Model, initial: Belief, etas: Array, start_time: Array, process_scale: Array):
+        outputs = ekf(model, scaled(process_scale), sample_period, initial, etas, start_time=start_time)
+        return outputs.innovation, outputs.innovation_cov
+
+    def compiled(function: Callable) -> Callable:
+        """`function(model, ...)` compiled with the model folded in, and with its coefficients and effects as
+        arguments: called as (coeffs | None, effects | None, ...)."""
+        folded = jax.jit(lambda *args: function(model, *args))
+        opened = jax.jit(lambda coeffs, effects, *args: function(model._replace(coeffs=coeffs, effects=effects), *args))
+
+        def call(coeffs: Coefficients | None, effects: Effects | None, *args):
+            if coeffs is None and effects is None:
+                return folded(*args)
+            return opened(model.coeffs if coeffs is None else coeffs, model.effects if effects is None else effects,
+                          *args)
+
+        return call
+
+    run_compiled, filter_compiled = compiled(run), compiled(filter_only)
+
+    def inputs(etas: np.ndarray, process_scale: np.ndarray | None) -> tuple[Belief, Array, Array]:
+        """The prior, the samples padded to a bucketed length (records of similar length share one
+        compilation; the NaN rows come after the record, predict-only, and are cut off again) and Q's factors."""
+        padded = np.full((-(-len(etas) // PAD_BUCKET) * PAD_BUCKET, 3), np.nan)
+        padded[: len(etas)] = etas
+        scale = np.ones(len(noise.process)) if process_scale is None else np.asarray(process_scale, dtype=float)
+        return initial_belief(etas, np.asarray(noise.initial)), jnp.asarray(padded), jnp.asarray(scale)
 
     def estimate(
         stamps_ns: np.ndarray,
@@ -311,24 +336,15 @@ def make_estimator(
         coeffs: Coefficients | None = None,
         effects: Effects | None = None,
         start_time: float = 0.0,
+        process_scale: np.ndarray | None = None,
     ) -> Estimate:
         """Filter and smooth samples on a regular grid (NaN rows = missing) from onset_index on,
         with the compiled model or with other coefficients / effects of the same rig; the row at onset_index
         `start_time` s after the drop onset (a later segment's; what clocked effects read)."""
         stamps_ns, etas = stamps_ns[onset_index:], etas[onset_index:]
-        initial = initial_belief(etas, np.asarray(noise.initial))
-        n = len(etas)
-        # Pad to a bucketed length so records of similar length share one compilation;
-        # the NaN rows come after the record (predict-only) and are cut off again.
-        padded = np.full((-(-n // PAD_BUCKET) * PAD_BUCKET, 3), np.nan)
-        padded[:n] = etas
-        if coeffs is None and effects is None:
-            outputs = run_folded(initial, jnp.asarray(padded), start_time)
-        else:
-            coeffs = model.coeffs if coeffs is None else coeffs
-            effects = model.effects if effects is None else effects
-            outputs = run_with_coeffs(coeffs, effects, initial, jnp.asarray(padded), start_time)
-        trimmed = jax.tree.map(lambda a: a[:n], jax.device_get(outputs))
+        initial, padded, scale = inputs(etas, process_scale)
+        outputs = run_compiled(coeffs, effects, initial, padded, start_time, scale)
+        trimmed = jax.tree.map(lambda a: a[: len(etas)], jax.device_get(outputs))
         filtered, smoothed, predicted, innovation, innovation_cov, nis = trimmed
         return Estimate(
             stamps_ns=stamps_ns,
@@ -343,6 +359,22 @@ def make_estimator(
             missing=missing,
         )
 
+    def innovations(
+        etas: np.ndarray,
+        onset_index: int = 0,
+        coeffs: Coefficients | None = None,
+        effects: Effects | None = None,
+        start_time: float = 0.0,
+        process_scale: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The filter's innovations (N, 3) m (NaN where no sample) and their covariances (N, 3, 3) m^2 from
+        onset_index on, as `estimate` would filter them."""
+        etas = etas[onset_index:]
+        initial, padded, scale = inputs(etas, process_scale)
+        outputs = filter_compiled(coeffs, effects, initial, padded, start_time, scale)
+        return tuple(np.asarray(a)[: len(etas)] for a in jax.device_get(outputs))
+
+    estimate.innovations = innovations
     estimate.model = model  # what it was compiled for (estimate_bag gates its effects per bag)
     estimate.noise = noise
     return estimate

@@ -173,6 +173,10 @@ class Config:
     topics: Topics
     training_noise_scale: float = 1.0  # factor on Q while training (smaller: model errors show in the innovations)
     smoothing_noise_scale: float = 1.0  # factor on Q of the offline estimate (a coefficient file's, `offline_noise`)
+    # the offline estimate's Q blocks scaled where a bag's own likelihood asks for it (`workflows.offline.bag_noise`),
+    # where Q was fitted on training bags (`noise_fitted`)
+    bag_process_noise: bool = True
+    noise_fitted: bool = False  # Q from training bags (a coefficient file's calibration), not the YAML's guess
     # N^2 per axis: the model's own force error in contact, measured on the training bags (a coefficient
     # file's, `core.smoothing.missing_force_squares`); None: m^2 Q_v / h^2 (`core.estimate.force_model_variance`)
     force_model_variance: tuple[float, float, float] | None = None
@@ -261,8 +265,8 @@ class Config:
         force_model_variance: tuple[float, float, float] | None = None,
         clearances: tuple[float, float] | None = None,
     ) -> "Config":
-        """This rig with identified contact constants, law, kernel, filter noise, the model's force
-        error and clearances (m, r0 and z0; None: the YAML's) (a coefficient file's)."""
+        """This rig with identified contact constants, law, kernel, filter noise (fitted: `noise_fitted`), the
+        model's force error and clearances (m, r0 and z0; None: the YAML's) (a coefficient file's)."""
         if not len(noise.process) == len(noise.initial) == law.state_size:
             raise ValueError(
                 f"contact.friction {law.friction} has a state of {law.state_size}, the filter noise "
@@ -270,7 +274,7 @@ class Config:
             )
         return replace(
             self, nominal=nominal, law=law, kernel=kernel, noise=noise, smoothing_noise_scale=smoothing_noise_scale,
-            force_model_variance=force_model_variance, clearances=clearances,
+            force_model_variance=force_model_variance, clearances=clearances, noise_fitted=True,
         )
 
     def with_friction(self, friction: str) -> "Config":
@@ -421,6 +425,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         drop=drop,
         regularisation=_regularisation(read),
         training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
+        bag_process_noise=read.flag("filter.bag_process_noise", True),
         law=law,
         training=_training_settings(read, law),
         topics=Topics(**{name: read.text(f"topics.{name}", default) for name, default in Topics().__dict__.items()}),

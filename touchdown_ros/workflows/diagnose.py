@@ -140,7 +140,7 @@ def _pad(a: np.ndarray, repeat: bool = False) -> np.ndarray:
 
 
 def _diagnose_bag(config: Config, path: Path, estimator, compiled: _Compiled, settings: Settings) -> BagDiagnosis:
-    result = estimate_bag(config, path, estimator)
+    result = estimate_bag(config, path, estimator, fit_noise=False)  # every model on the same Q
     est = result.estimate
     n = len(est.measured)
     model = estimator.model._replace(effects=bag_effects(config, path, estimator.model.effects))

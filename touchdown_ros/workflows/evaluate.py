@@ -89,8 +89,8 @@ def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) 
     estimator = estimator_for(config, effects=Effects(), answer=FILTERED)  # the figures are the filtered estimate's
     results = []
     for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
-        constant = estimate_bag(config, path, estimator)
-        pkbkr = estimate_bag(config, path, estimator, trained.coeffs, trained.effects)
+        constant = estimate_bag(config, path, estimator, fit_noise=False)  # both methods on the same Q
+        pkbkr = estimate_bag(config, path, estimator, trained.coeffs, trained.effects, fit_noise=False)
         results.append(
             BagComparison(
                 Path(path), constant, pkbkr, {"constant": compare_metrics(constant), "pkbkr": compare_metrics(pkbkr)}

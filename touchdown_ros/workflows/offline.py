@@ -8,6 +8,7 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
+from touchdown_ros.core.calibration import Q_BLOCKS, Q_NAMES, q_factors
 from touchdown_ros.core.effects import Effects, gates_for
 from touchdown_ros.core.estimate import (
     Estimate,
@@ -17,9 +18,11 @@ from touchdown_ros.core.estimate import (
     make_estimator,
 )
 from touchdown_ros.core.input_policy import (
-    InputPolicy, RecordInput, split_record, threshold_for_window, window_spread,
+    InputPolicy, RecordInput, Segment, split_record, threshold_for_window, window_spread,
 )
 from touchdown_ros.core.metrics import relative_peak_error, rmse
+from touchdown_ros.core.selection import COLLINEAR_MARGIN
+from touchdown_ros.core.training import errors_of_innovations
 from touchdown_ros.core.types import Coefficients
 from touchdown_ros.io.bags import (
     BagError,
@@ -103,10 +106,13 @@ def estimate_bag(
     coeffs: Coefficients | None = None,
     effects: Effects | None = None,
     answer: str = SMOOTHED,
+    fit_noise: bool | None = None,
 ) -> BagEstimate:
     """Read a bag's displacements, find the drop and estimate everything after it, with the
     estimator's model or other coefficients / effects; effects gated by the bag's conditions.
-    The summary describes the `answer` (smoothed | filtered) estimate."""
+    The summary describes the `answer` (smoothed | filtered) estimate. `fit_noise`: the smoothed estimate
+    with Q's blocks scaled as the bag's own likelihood asks (`bag_noise`; default: `filter.bag_process_noise` where
+    Q was fitted on training bags); False where models are compared on the same noise (the workbench)."""
     check_answer(answer)
     path = Path(path)
     effects = estimator.model.effects if effects is None else effects
@@ -114,11 +120,88 @@ def estimate_bag(
     if coeffs is None and all(g == 1.0 for g in gated.gates) and effects is estimator.model.effects:
         gated = None  # the compiled model as it is
     record = read_record(config, path)
-    estimate, restarts = estimate_record(config, record, estimator, path, coeffs=coeffs, effects=gated)
+    fit_noise = config.bag_process_noise and config.noise_fitted if fit_noise is None else fit_noise
+    noise = BagNoise()
+    if fit_noise and answer == SMOOTHED:
+        noise = bag_noise(config, record, estimator, path, coeffs, gated)
+    scale = noise.process_scale(len(estimator.noise.process))
+    estimate, restarts = estimate_record(config, record, estimator, path, coeffs, gated, scale)
     truth = bag_truth(config, path, estimate.stamps_ns)
     summary = summarise(estimate, truth, config, answer)
     summary["input"] = input_summary(record, restarts)
+    summary["process_noise_factors"] = noise.as_dict()
     return BagEstimate(path, estimate, truth, summary, answer, restarts)
+
+
+#: Factors on a block of Q (`core.calibration.Q_BLOCKS`: radial, axial) that a bag's own likelihood is asked about
+#: for its offline estimate: 4, 16 ... 16384, then half and twice the best of them (docs/calibration.md, "Q from the
+#: bag's own likelihood").
+BAG_NOISE_FACTORS = tuple(4.0**k for k in range(1, 8))
+
+
+@dataclass(frozen=True)
+class BagNoise:
+    """The factors on Q's blocks (radial, axial) of one bag's offline estimate, and for each block the best factor
+    tried and how much it lowers the bag's -2 ln L against the factors before it (taken where that is at least
+    COLLINEAR_MARGIN)."""
+
+    factors: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
+    best: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
+    falls: tuple[float, ...] = (0.0,) * len(Q_BLOCKS)
+
+    def process_scale(self, size: int, relative: float = 1.0) -> np.ndarray:
+        """(size,) factors on the diagonal of Q (a spinning ring's speed: 1), times `relative`."""
+        return relative * np.asarray(q_factors(np.log(np.asarray(self.factors)), size))
+
+    def as_dict(self) -> dict[str, dict[str, float]]:
+        return {
+            name: {"factor": f, "best_factor_tried": b, "minus_two_log_likelihood_fall": round(fall, 2)}
+            for name, f, b, fall in zip(Q_NAMES, self.factors, self.best, self.falls)
+        }
+
+
+def bag_noise(
+    config: Config,
+    record: RecordInput,
+    estimator: Estimator,
+    source: str | Path = "",
+    coeffs: Coefficients | None = None,
+    effects: Effects | None = None,
+) -> BagNoise:
+    """Q for one bag's offline estimate: each block of the fitted Q (the live filter's) scaled, one block after the
+    other, by the factor (BAG_NOISE_FACTORS, then half and twice the best) under which the bag's displacements are
+    most likely, where that lowers
+    its -2 ln L by COLLINEAR_MARGIN or more (a drop unlike the training drops, e.g. bouncing where they rolled: the
+    model errs more on it than the fitted Q allows); else the fitted Q. The estimator filters with the offline Q
+    (`Config.offline_noise`), the fitted one times `filter.smoothing_noise_scale`, which the factors scale in turn."""
+    size = len(estimator.noise.process)
+    fitted = 1.0 / config.smoothing_noise_scale
+
+    def minus_two_log_l(noise: BagNoise) -> float:
+        total = 0.0
+        for segment, start, _, start_time in record_segments(config, record, source):
+            innovation, S = estimator.innovations(segment.etas, start, coeffs, effects, start_time,
+                                                  noise.process_scale(size, fitted))
+            valid = np.isfinite(innovation).all(axis=1)
+            measurement = np.asarray(estimator.noise.measurement)
+            total += float(np.sum(errors_of_innovations(innovation, S, measurement, valid, "nll")))
+        return total
+
+    factors, best, falls = [1.0] * len(Q_BLOCKS), [], []
+    taken = minus_two_log_l(BagNoise())
+    for block in range(len(Q_BLOCKS)):  # in turn, each with the factors taken before it
+        def with_factor(f: float, block: int = block) -> float:
+            return minus_two_log_l(BagNoise(tuple(factors[:block] + [f] + factors[block + 1:])))
+
+        tried = {f: with_factor(f) for f in BAG_NOISE_FACTORS}
+        coarse = min(tried, key=tried.get)
+        tried.update({f: with_factor(f) for f in (coarse / 2.0, coarse * 2.0)})
+        most_likely = min(tried, key=tried.get)
+        best.append(most_likely)
+        falls.append(taken - tried[most_likely])
+        if falls[-1] >= COLLINEAR_MARGIN:
+            factors[block], taken = most_likely, tried[most_likely]
+    return BagNoise(tuple(factors), tuple(best), tuple(falls))
 
 
 def force_rmse_against_truth(config: Config, coefficients: str | Path, bags: list[str | Path]) -> float:
@@ -129,7 +212,7 @@ def force_rmse_against_truth(config: Config, coefficients: str | Path, bags: lis
     estimator = estimator_for(calibrated, loaded.coeffs, loaded.effects)
     squares = []
     for bag in bags:
-        result = estimate_bag(calibrated, bag, estimator)
+        result = estimate_bag(calibrated, bag, estimator, fit_noise=False)  # models compared on the same Q
         if result.truth is None:
             raise ValueError(f"{bag}: no /truth topics to compare the contact force with")
         error = np.asarray(result.estimate.smoothed.force_xyz) - result.truth.contact_force
@@ -137,17 +220,12 @@ def force_rmse_against_truth(config: Config, coefficients: str | Path, bags: lis
     return float(np.sqrt(np.nanmean(np.concatenate(squares))))
 
 
-def estimate_record(
-    config: Config,
-    record: RecordInput,
-    estimator: Estimator,
-    source: str | Path = "",
-    coeffs: Coefficients | None = None,
-    effects: Effects | None = None,
-) -> tuple[Estimate, tuple[int, ...]]:
-    """A record under the input policy estimated from its drop onset on: each segment after a long
-    gap, clock jump or run of unusable samples by a filter started afresh from its own data (as the
-    live node restarts it). Returns the joined estimate and the rows where the filter restarted."""
+def record_segments(
+    config: Config, record: RecordInput, source: str | Path = ""
+) -> list[tuple[Segment, int, int, float]]:
+    """The parts of a record under the input policy that are estimated, from its drop onset on: each segment
+    after a long gap, clock jump or run of unusable samples with a usable sample after its first row; per part
+    (segment, first row, rows without a usable sample, s after the drop onset at the first row)."""
     segment_index, onset = find_onset(record, config, Path(source))
     onset_stamp_ns = int(record.segments[segment_index].stamps_ns[onset])
     parts = []
@@ -157,11 +235,28 @@ def estimate_record(
         if not np.isfinite(segment.etas[start:]).all(axis=1).any():
             continue  # nothing usable to start a filter from
         missing = int(np.count_nonzero(~np.isfinite(segment.etas[start:]).all(axis=1)))
-        start_time = (int(segment.stamps_ns[start]) - onset_stamp_ns) * 1e-9  # s after the drop onset
-        parts.append(
-            estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects,
-                      start_time=start_time)
-        )
+        parts.append((segment, start, missing, (int(segment.stamps_ns[start]) - onset_stamp_ns) * 1e-9))
+    return parts
+
+
+def estimate_record(
+    config: Config,
+    record: RecordInput,
+    estimator: Estimator,
+    source: str | Path = "",
+    coeffs: Coefficients | None = None,
+    effects: Effects | None = None,
+    process_scale: np.ndarray | None = None,
+) -> tuple[Estimate, tuple[int, ...]]:
+    """A record under the input policy estimated from its drop onset on: each segment after a long
+    gap, clock jump or run of unusable samples by a filter started afresh from its own data (as the
+    live node restarts it). Returns the joined estimate and the rows where the filter restarted.
+    `process_scale`: factors on the diagonal of the estimator's Q (default 1)."""
+    parts = [
+        estimator(segment.stamps_ns, segment.etas, start, missing, coeffs=coeffs, effects=effects,
+                  start_time=start_time, process_scale=process_scale)
+        for segment, start, missing, start_time in record_segments(config, record, source)
+    ]
     restarts = tuple(int(r) for r in np.cumsum([len(p.stamps_ns) for p in parts])[:-1])
     return concatenate_estimates(parts), restarts
 

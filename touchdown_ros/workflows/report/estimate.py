@@ -94,6 +94,9 @@ def summary_table(
         "(`--filtered`) only the samples up to each one, as the live node does. sigma: 1-sigma of the "
         "contact force, linearised through the estimate's covariance, plus the model's own error in contact."
         + (f" Process noise: {process_noise}." if process_noise else "")
+        + " Q x r / z: the factors on the radial and axial blocks of Q with which the bag's own displacements are most"
+        " likely, taken where they lower its -2 ln L by 10 or more (a drop unlike the training drops;"
+        " `filter.bag_process_noise`, smoothed estimate of a trained rig only; 1 / 1: Q as fitted)."
         + (f" The force band's model error in contact: {force_band}." if force_band else "")
         + "\n\n"
         + "".join(f"- Calibration: {note}\n" for note in notes)
@@ -102,8 +105,8 @@ def summary_table(
     header = (
         "| bag | estimate | samples | RMSE x / um | RMSE y / um | RMSE z / um | peak F_z / kN | sigma at peak F_z / kN "
         "| peak F_r / kN | velocity RMSE / (mm/s) | force RMSE / N | peak F_z error | 2-sigma band covers v / F, % "
-        "| input (docs/input_policy.md) |\n"
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n"
+        "| Q x r / z | input (docs/input_policy.md) |\n"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n"
     )
     rows = []
     for result in results:
@@ -121,9 +124,21 @@ def summary_table(
         rows.append(
             f"| {result.path.name} | {result.answer} | {s['samples']} | {' | '.join(rms)} "
             f"| {s['peak_axial_force_N'] / 1e3:.2f} | {s['peak_axial_force_std_N'] / 1e3:.2f} "
-            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} | {covers} | {input_text(s)} |"
+            f"| {s['peak_radial_force_N'] / 1e3:.2f} | {velocity} | {force} | {peak} | {covers} | {q_factors_text(s)} "
+            f"| {input_text(s)} |"
         )
     return intro + header + "\n".join(rows) + "\n"
+
+
+def q_factors_text(summary: dict[str, Any]) -> str:
+    """The factors on Q's radial and axial blocks of one bag's estimate ("1 / 1": Q as fitted), with the fall of
+    -2 ln L they bought."""
+    blocks = (summary.get("process_noise_factors") or {}).values()
+    if not blocks:
+        return "-"
+    text = " / ".join(f"{b['factor']:g}" for b in blocks)
+    fall = sum(b["minus_two_log_likelihood_fall"] for b in blocks if b["factor"] != 1.0)
+    return text + (f" (-2 ln L -{fall:.0f})" if fall else "")
 
 
 def input_text(summary: dict[str, Any]) -> str:
