@@ -11,7 +11,10 @@ against the simulator's truth.
 
     .venv/bin/python bench/calibration_family.py [--variants a,b] [--drawn N [--draw-seed S]] [--train 3] [--test 2]
         [--loss nll|one_step] [--out DIR] [-p contact.friction:=spinning_ring ...]
-        [--truth simulator.ceramic.ring_inertia:=9.0e-3 --truth rig.radial_clearance:=0.26e-3 ...]
+        [--truth simulator.ceramic.ring_inertia:=9.0e-3 --truth rig.radial_clearance:=0.26e-3 ...] [--reuse]
+
+With --reuse, each rig's bags and coefficient file already in DIR (an earlier run's) are estimated again
+without simulating or training: for a change to the estimate alone, measured on the same files.
 
 Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.
 Figures per held-out bag: peak axial / radial force error (%), force RMSE over the peak force
@@ -39,7 +42,7 @@ from touchdown_ros.core.metrics import relative_peak_error
 from touchdown_ros.io.config import load_config
 from touchdown_ros.io.coefficients import load_coefficients
 from touchdown_ros.workflows.offline import estimate_bag, estimator_for
-from touchdown_ros.sim.family import VARIANTS, drawn_variants, variant, write_variant_bags
+from touchdown_ros.sim.family import VARIANTS, bag_name, drawn_variants, variant, write_variant_bags
 from touchdown_ros.workflows.train import train
 
 Z95 = 1.959964
@@ -94,6 +97,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
             velocity, np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
         "force_band_coverage_percent": _coverage(force, force_cov, true_force),
+        "process_noise_factors": [b["factor"] for b in result.summary.get("process_noise_factors", {}).values()],
         # out of contact the estimate and the truth are both 0 with a 0 band, which counts as covered
         "force_band_coverage_in_contact_percent": _coverage(force, force_cov, true_force, in_contact),
         # per axis x / y / z: the axial band is the one impacts stretch (docs/calibration.md)
@@ -105,21 +109,26 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
 
 def run_variant(
     name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough",
-    overrides: dict | None = None, truth: dict | None = None,
+    overrides: dict | None = None, truth: dict | None = None, reuse: bool = False,
 ) -> dict:
     """Simulate, train and estimate one rig; `overrides` (dotted keys) change the estimator's
     configuration (the rig's guess, its friction model, ...), not the simulator's; `truth`
     (`simulator.*` or `rig.*` keys) changes the rig's truth only: the estimator keeps the variant's
-    rig YAML (a user's drawing that is off)."""
+    rig YAML (a user's drawing that is off). `reuse`: the bags and coefficient file of an earlier run in
+    `out`, estimated again."""
     told = variant(name)
     v = replace(told, overrides={**told.overrides, **(truth or {})})
     config = load_config(overrides={**dict(told.overrides), **(overrides or {})})
     config = replace(config, training=replace(config.training, loss=loss, search=search))
-    bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
     coeffs_path = out / name / f"coefficients_{loss}.yaml"
-    started = time.perf_counter()
-    outcome = train(config, bags[:n_train], coeffs_path, stream=log)
-    seconds = time.perf_counter() - started
+    if reuse:
+        bags = [out / name / bag_name(v, n) for n in range(1, n_train + n_test + 1)]
+        outcome, seconds = None, None
+    else:
+        bags = write_variant_bags(v, out / name, n_drops=n_train + n_test, seed=0)
+        started = time.perf_counter()
+        outcome = train(config, bags[:n_train], coeffs_path, stream=log)
+        seconds = round(time.perf_counter() - started, 1)
     loaded = load_coefficients(coeffs_path, config)
     calibrated = loaded.config(config)
     models = {
@@ -132,22 +141,22 @@ def run_variant(
         label: [bag_figures(estimate_bag(cfg, bag, est), noise_rms) for bag in bags[n_train:]]
         for label, (cfg, est) in models.items()
     }
-    cal = outcome.calibration
+    cal = outcome.calibration if outcome else None
     return {
         "variant": name,
         "description": v.description,
         "loss": loss,
         "overrides": overrides or {},
         "truth": truth or {},
-        "train_seconds": round(seconds, 1),
+        "train_seconds": seconds,
         "law": calibrated.law.label + ("" if calibrated.law.friction == "paper" else f"; {calibrated.law.friction}"),
         "friction_models": list(cal.frictions) if cal else [],
         "calibrated": {k: float(x) for k, x in calibrated.nominal._asdict().items()},
         "relative_standard_error": cal.relative_sd if cal else {},
         "held_by_prior": list(cal.held_by_prior) if cal else [],
         "stage1_converged": bool(cal and cal.convergence.converged),
-        "stage2_converged": bool(outcome.pkbkr.convergence and outcome.pkbkr.convergence.converged),
-        "mean_nis": list(outcome.mean_nis),
+        "stage2_converged": bool(outcome and outcome.pkbkr.convergence and outcome.pkbkr.convergence.converged),
+        "mean_nis": list(outcome.mean_nis) if outcome else [],
         "held_out": [bag.name for bag in bags[n_train:]],
         "figures": figures,
     }
@@ -217,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--verbose", action="store_true", help="show the trainer's progress")
     parser.add_argument("-p", dest="parameters", action="append", default=[], metavar="NAME:=VALUE",
                         help="estimator parameter for every rig (e.g. contact.friction:=spinning_ring)")
+    parser.add_argument("--reuse", action="store_true",
+                        help="estimate the bags and coefficient file already in --out again (no simulation, training)")
     parser.add_argument("--truth", action="append", default=[], metavar="NAME:=VALUE",
                         help="the rig's truth for every rig, simulated but not told to the estimator "
                              "(e.g. simulator.ceramic.ring_inertia:=9.0e-3, rig.radial_clearance:=0.26e-3)")
@@ -234,13 +245,15 @@ def main(argv: list[str] | None = None) -> int:
     names += [v.name for v in drawn_variants(args.draw_seed, args.drawn)]
     for name in names:
         log = sys.stderr if args.verbose else io.StringIO()
+        doing = "estimating again" if args.reuse else f"simulating, training on {args.train} bags, estimating"
         print(
-            f"[{name}] simulating, training on {args.train} bags, estimating {args.test} ...",
+            f"[{name}] {doing} {args.test} ...",
             file=sys.stderr,
             flush=True,
         )
         results.append(
-            run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth)
+            run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth,
+                        args.reuse)
         )
         print(table(results[-1:]), file=sys.stderr, flush=True)
         (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
