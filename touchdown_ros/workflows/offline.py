@@ -170,20 +170,19 @@ def bag_noise(
 ) -> BagNoise:
     """Q for one bag's offline estimate: each block of the fitted Q (the live filter's) scaled, one block after the
     other, by the factor (BAG_NOISE_FACTORS, then half and twice the best) under which the bag's displacements are
-    most likely, where that lowers
-    its -2 ln L by COLLINEAR_MARGIN or more (a drop unlike the training drops, e.g. bouncing where they rolled: the
-    model errs more on it than the fitted Q allows); else the fitted Q. The estimator filters with the offline Q
-    (`Config.offline_noise`), the fitted one times `filter.smoothing_noise_scale`, which the factors scale in turn."""
-    size = len(estimator.noise.process)
-    fitted = 1.0 / config.smoothing_noise_scale
+    most likely, where that lowers its -2 ln L by COLLINEAR_MARGIN or more (a drop unlike the training drops, e.g.
+    bouncing where they rolled: the model errs more on it than the fitted Q allows); else the fitted Q. The estimator
+    filters with the offline Q (`Config.offline_noise`), the fitted one times `filter.smoothing_noise_scale`, which
+    the factors scale in turn."""
+    size, segments = len(estimator.noise.process), record_segments(config, record, source)
+    fitted, measurement = 1.0 / config.smoothing_noise_scale, np.asarray(estimator.noise.measurement)
 
     def minus_two_log_l(noise: BagNoise) -> float:
         total = 0.0
-        for segment, start, _, start_time in record_segments(config, record, source):
+        for segment, start, _, start_time in segments:
             innovation, S = estimator.innovations(segment.etas, start, coeffs, effects, start_time,
                                                   noise.process_scale(size, fitted))
             valid = np.isfinite(innovation).all(axis=1)
-            measurement = np.asarray(estimator.noise.measurement)
             total += float(np.sum(errors_of_innovations(innovation, S, measurement, valid, "nll")))
         return total
 
