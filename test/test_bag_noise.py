@@ -49,6 +49,9 @@ def test_a_q_too_small_for_the_bag_is_scaled_up_and_its_velocity_band_covers_mor
     assert as_fitted.summary["process_noise_factors"]["q_radial"]["factor"] == 1.0
     assert _velocity_band_coverage(own) > _velocity_band_coverage(as_fitted) + 5.0
     assert f"| {radial['factor']:g} / " in summary_table([own])
+    # the NIS the live filter (Q as fitted) has on the bag, beside the scaled filter's
+    assert own.summary["mean_nis_fitted_q"] > own.summary["mean_nis"]
+    assert f"NIS as fitted {own.summary['mean_nis_fitted_q']:.2f}" in summary_table([own])
 
 
 def test_the_factors_scale_the_fitted_q_not_the_smoothings(too_small_q, experiment_11_bag):
@@ -62,13 +65,16 @@ def test_the_factors_scale_the_fitted_q_not_the_smoothings(too_small_q, experime
 
 def test_q_is_as_given_for_the_yamls_guess_the_filtered_answer_or_when_switched_off(experiment_11_bag, too_small_q):
     """Without training bags behind Q, for the live node's answer, and with filter.bag_process_noise false."""
-    trained, as_fitted, _ = too_small_q
+    trained, as_fitted, own = too_small_q
     untrained = estimate_bag(CONFIG, experiment_11_bag, estimator_for(CONFIG))
     filtered = estimate_bag(trained, experiment_11_bag, estimator_for(trained, answer=FILTERED), answer=FILTERED)
     switched_off = replace(trained, bag_process_noise=False)
     off = estimate_bag(switched_off, experiment_11_bag, estimator_for(switched_off))
     for result in (untrained, filtered, off):
         assert [b["factor"] for b in result.summary["process_noise_factors"].values()] == [1.0, 1.0]
+        assert "mean_nis_fitted_q" not in result.summary
+    # the search's NIS under Q as fitted is the live filter's, the filtered answer's
+    assert own.summary["mean_nis_fitted_q"] == pytest.approx(filtered.summary["mean_nis"], rel=1e-6)
     np.testing.assert_array_equal(np.asarray(off.estimate.smoothed.state),
                                   np.asarray(as_fitted.estimate.smoothed.state))
     assert load_config(overrides={"filter.bag_process_noise": False}).bag_process_noise is False

@@ -130,6 +130,8 @@ def estimate_bag(
     summary = summarise(estimate, truth, config, answer)
     summary["input"] = input_summary(record, restarts)
     summary["process_noise_factors"] = noise.as_dict()
+    if noise.fitted_mean_nis is not None:  # beside mean_nis, the NIS under the Q the estimate filtered with
+        summary["mean_nis_fitted_q"] = noise.fitted_mean_nis
     return BagEstimate(path, estimate, truth, summary, answer, restarts)
 
 
@@ -148,6 +150,7 @@ class BagNoise:
     factors: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
     best: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
     falls: tuple[float, ...] = (0.0,) * len(Q_BLOCKS)
+    fitted_mean_nis: float | None = None  # the bag's mean NIS under the fitted Q (the live filter's); None: not asked
 
     def process_scale(self, size: int, relative: float = 1.0) -> np.ndarray:
         """(size,) factors on the diagonal of Q (a spinning ring's speed: 1), times `relative`."""
@@ -177,20 +180,23 @@ def bag_noise(
     size, segments = len(estimator.noise.process), record_segments(config, record, source)
     fitted, measurement = 1.0 / config.smoothing_noise_scale, np.asarray(estimator.noise.measurement)
 
-    def minus_two_log_l(noise: BagNoise) -> float:
-        total = 0.0
+    def minus_two_log_l(noise: BagNoise) -> tuple[float, float]:
+        """-2 ln L of the bag's displacements and their mean NIS under the fitted Q times `noise`'s factors."""
+        total, nis = 0.0, []
         for segment, start, _, start_time in segments:
             innovation, S = estimator.innovations(segment.etas, start, coeffs, effects, start_time,
                                                   noise.process_scale(size, fitted))
             valid = np.isfinite(innovation).all(axis=1)
             total += float(np.sum(errors_of_innovations(innovation, S, measurement, valid, "nll")))
-        return total
+            used = innovation[valid]
+            nis.append(np.einsum("ni,ni->n", used, np.linalg.solve(S[valid], used[..., None])[..., 0]))
+        return total, float(np.mean(np.concatenate(nis)))
 
     factors, best, falls = [1.0] * len(Q_BLOCKS), [], []
-    taken = minus_two_log_l(BagNoise())
+    taken, fitted_mean_nis = minus_two_log_l(BagNoise())
     for block in range(len(Q_BLOCKS)):  # in turn, each with the factors taken before it
         def with_factor(f: float, block: int = block) -> float:
-            return minus_two_log_l(BagNoise(tuple(factors[:block] + [f] + factors[block + 1:])))
+            return minus_two_log_l(BagNoise(tuple(factors[:block] + [f] + factors[block + 1:])))[0]
 
         tried = {f: with_factor(f) for f in BAG_NOISE_FACTORS}
         coarse = min(tried, key=tried.get)
@@ -200,7 +206,7 @@ def bag_noise(
         falls.append(taken - tried[most_likely])
         if falls[-1] >= COLLINEAR_MARGIN:
             factors[block], taken = most_likely, tried[most_likely]
-    return BagNoise(tuple(factors), tuple(best), tuple(falls))
+    return BagNoise(tuple(factors), tuple(best), tuple(falls), fitted_mean_nis)
 
 
 def force_rmse_against_truth(config: Config, coefficients: str | Path, bags: list[str | Path]) -> float:

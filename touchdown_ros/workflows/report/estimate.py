@@ -96,7 +96,8 @@ def summary_table(
         + (f" Process noise: {process_noise}." if process_noise else "")
         + " Q x r / z: the factors on the radial and axial blocks of Q with which the bag's own displacements are most"
         " likely, taken where they lower its -2 ln L by 10 or more (a drop unlike the training drops;"
-        " `filter.bag_process_noise`, smoothed estimate of a trained rig only; 1 / 1: Q as fitted)."
+        " `filter.bag_process_noise`, smoothed estimate of a trained rig only; 1 / 1: Q as fitted), and the bag's"
+        " mean NIS under Q as fitted, the live filter's (3 when the fitted Q holds on this bag)."
         + (f" The force band's model error in contact: {force_band}." if force_band else "")
         + "\n\n"
         + "".join(f"- Calibration: {note}\n" for note in notes)
@@ -132,13 +133,15 @@ def summary_table(
 
 def q_factors_text(summary: dict[str, Any]) -> str:
     """The factors on Q's radial and axial blocks of one bag's estimate ("1 / 1": Q as fitted), with the fall of
-    -2 ln L they bought."""
+    -2 ln L they bought and the bag's mean NIS under Q as fitted."""
     blocks = (summary.get("process_noise_factors") or {}).values()
     if not blocks:
         return "-"
     text = " / ".join(f"{b['factor']:g}" for b in blocks)
     fall = sum(b["minus_two_log_likelihood_fall"] for b in blocks if b["factor"] != 1.0)
-    return text + (f" (-2 ln L -{fall:.0f})" if fall else "")
+    notes = ([f"-2 ln L -{fall:.0f}"] if fall else []) + (
+        [f"NIS as fitted {summary['mean_nis_fitted_q']:.2f}"] if "mean_nis_fitted_q" in summary else [])
+    return text + (f" ({'; '.join(notes)})" if notes else "")
 
 
 def input_text(summary: dict[str, Any]) -> str:
