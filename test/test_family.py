@@ -27,7 +27,9 @@ from touchdown_ros.sim.family import (
     variant_config,
     write_rig_yaml,
 )
-from touchdown_ros.sim.params import check_step_size, required_substeps, simulator_parameters, truth_constants
+from touchdown_ros.sim.params import (
+    BALL_DEFAULTS, check_step_size, required_substeps, simulator_parameters, truth_constants,
+)
 from touchdown_ros.sim.simulator import RPM, simulate_drop
 
 CONFIG = load_config()
@@ -186,6 +188,12 @@ def test_family_covers_the_brief():
         variant("no_such_rig")
     with pytest.raises(ValueError, match="contact.k_R"):
         Variant("cheat", "truth-derived nominal constants", {"contact.k_R": 2.0e9})
+
+
+def test_the_reference_yamls_balls_are_the_simulators_defaults():
+    """The named rigs' stiffnesses are matched to the default ceramic ball; the reference YAML must mean the same."""
+    assert simulator_parameters(CONFIG).balls == BALL_DEFAULTS
+    assert matched_stiffness(1.5) == BALL_DEFAULTS["ceramic"]["radial_stiffness"]
 
 
 @pytest.mark.parametrize("v", VARIANTS, ids=lambda v: v.name)

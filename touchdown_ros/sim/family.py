@@ -40,7 +40,7 @@ import yaml
 
 from touchdown_ros.io.config import Config, ConfigError, load_config
 from touchdown_ros.sim.bags import write_drop_bag
-from touchdown_ros.sim.params import BALLS, required_substeps, simulator_parameters, truth_constants
+from touchdown_ros.sim.params import BALL_DEFAULTS, BALLS, required_substeps, simulator_parameters, truth_constants
 from touchdown_ros.sim.record import DropCondition, DropRecord
 from touchdown_ros.sim.simulator import RPM, simulate_drop
 
@@ -51,7 +51,8 @@ RIG_FILE = "rig.yaml"
 #: Deformation (m) at which a contact of another exponent gives the reference ball's force.
 MATCHED_DEFORMATION = 45e-6
 
-_REFERENCE_STIFFNESS = 3.0e11  # N/m^1.5, ceramic radial and axial (config/reference_rig.yaml)
+#: N/m^1.5, the reference ball's radial and axial stiffness (the simulator's default ceramic ball, the YAML's too).
+_REFERENCE_STIFFNESS = BALL_DEFAULTS["ceramic"]["radial_stiffness"]
 
 
 def matched_stiffness(exponent: float, reference: float = _REFERENCE_STIFFNESS) -> float:

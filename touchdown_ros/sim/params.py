@@ -65,7 +65,8 @@ _BALL_BOUNDS: dict[str, tuple[float, float, bool]] = {
     "radial_viscous_damping": (0.0, math.inf, True),
     "axial_viscous_damping": (0.0, math.inf, True),
 }
-_BALL_DEFAULTS: dict[str, dict[str, float]] = {
+#: Each ball's contact constants where `simulator.<ball>.*` does not set them (config/reference_rig.yaml: the same).
+BALL_DEFAULTS: dict[str, dict[str, float]] = {
     "ceramic": {
         "radial_stiffness": 3.0e11,
         "radial_damping": 20.0,
@@ -153,7 +154,7 @@ def simulator_parameters(config: Config) -> SimulatorParameters:
     scalars = {k: _number(k, raw.get(k, d), lo, hi, inc) for k, (d, lo, hi, inc) in _SCALARS.items()}
     balls = {
         b: {
-            k: _number(f"{b}.{k}", raw.get(f"{b}.{k}", _BALL_DEFAULTS[b][k]), lo, hi, inc)
+            k: _number(f"{b}.{k}", raw.get(f"{b}.{k}", BALL_DEFAULTS[b][k]), lo, hi, inc)
             for k, (lo, hi, inc) in _BALL_BOUNDS.items()
         }
         for b in BALLS
