@@ -3,7 +3,7 @@
 For each rig of `touchdown_ros.sim.family` (constants differing widely from the
 reference: stiffness, damping law, friction, contact exponent, mass, noise), simulate
 drops, run `touchdown train` with its defaults on the first bags from the reference
-rig's contact guess, and estimate the other bags (smoothed) with
+rig's contact guess, and estimate the other bags (smoothed; `--answer filtered`: the live filter's) with
 - guess: the rig YAML's nominal constants as they are (constant model),
 - stage 1: the calibrated contact law and constants (alpha = 0),
 - stage 1+2: the calibrated constants with the PKBKR functions of the coefficient file,
@@ -12,9 +12,12 @@ against the simulator's truth.
     .venv/bin/python bench/calibration_family.py [--variants a,b] [--drawn N [--draw-seed S]] [--train 3] [--test 2]
         [--loss nll|one_step] [--out DIR] [-p contact.friction:=spinning_ring ...]
         [--truth simulator.ceramic.ring_inertia:=9.0e-3 --truth rig.radial_clearance:=0.26e-3 ...] [--reuse]
+        [--answer smoothed|filtered]
 
 With --reuse, each rig's bags and coefficient file already in DIR (an earlier run's) are estimated again
-without simulating or training: for a change to the estimate alone, measured on the same files.
+without simulating or training: for a change to the estimate alone, measured on the same files. With
+--answer filtered the figures are the filter's (the fitted Q, as the live node filters; no bag search), written to
+DIR/family_LOSS_filtered.*.
 
 Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.
 Figures per held-out bag: peak axial / radial force error (%), force RMSE over the peak force
@@ -41,7 +44,7 @@ from touchdown_ros.cli import parameter_overrides
 from touchdown_ros.core.metrics import relative_peak_error
 from touchdown_ros.io.config import load_config
 from touchdown_ros.io.coefficients import load_coefficients
-from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+from touchdown_ros.workflows.offline import ANSWERS, SMOOTHED, estimate_bag, estimator_for
 from touchdown_ros.sim.family import VARIANTS, bag_name, drawn_variants, variant, write_variant_bags
 from touchdown_ros.workflows.train import train
 
@@ -75,15 +78,15 @@ def _peak_anatomy(series: dict[str, tuple[np.ndarray, np.ndarray]], summary: dic
 
 
 def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
-    """The figures of one held-out bag, from the smoothed estimate."""
-    smoothed, truth = result.estimate.smoothed, result.truth
-    force, true_force = np.asarray(smoothed.force_xyz), truth.contact_force
+    """The figures of one held-out bag, from its written estimate (smoothed or filtered: `result.answer`)."""
+    estimate, truth = getattr(result.estimate, result.answer), result.truth
+    force, true_force = np.asarray(estimate.force_xyz), truth.contact_force
     radial, true_radial = np.hypot(force[:, 0], force[:, 1]), np.hypot(true_force[:, 0], true_force[:, 1])
     peak = float(np.nanmax(np.linalg.norm(true_force, axis=1)))
     force_rmse = float(np.sqrt(np.nanmean(np.sum((force - true_force) ** 2, axis=1))))
-    position, velocity = np.asarray(smoothed.state)[:, :3], np.asarray(smoothed.state)[:, 4:7]
+    position, velocity = np.asarray(estimate.state)[:, :3], np.asarray(estimate.state)[:, 4:7]
     measured = result.estimate.measured
-    force_cov = getattr(smoothed, "force_cov", None)
+    force_cov = getattr(estimate, "force_cov", None)
     force_cov = None if force_cov is None else np.asarray(force_cov)
     in_contact = (np.linalg.norm(true_force, axis=1) > 0.0) | (np.linalg.norm(force, axis=1) > 0.0)
     return {
@@ -94,7 +97,7 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
         "displacement_rmse_over_noise": float(np.sqrt(np.nanmean((position - measured) ** 2)) / noise_rms),
         "velocity_rmse_m_s": float(np.sqrt(np.nanmean((velocity - truth.velocity) ** 2))),
         "velocity_band_coverage_percent": _coverage(
-            velocity, np.asarray(smoothed.state_cov)[:, 4:7, 4:7], truth.velocity
+            velocity, np.asarray(estimate.state_cov)[:, 4:7, 4:7], truth.velocity
         ),
         "force_band_coverage_percent": _coverage(force, force_cov, true_force),
         "process_noise_factors": [b["factor"] for b in result.summary.get("process_noise_factors", {}).values()],
@@ -109,13 +112,13 @@ def bag_figures(result, noise_rms: float) -> dict[str, float | None]:
 
 def run_variant(
     name: str, out: Path, n_train: int, n_test: int, loss: str, log, search: str = "thorough",
-    overrides: dict | None = None, truth: dict | None = None, reuse: bool = False,
+    overrides: dict | None = None, truth: dict | None = None, reuse: bool = False, answer: str = SMOOTHED,
 ) -> dict:
     """Simulate, train and estimate one rig; `overrides` (dotted keys) change the estimator's
     configuration (the rig's guess, its friction model, ...), not the simulator's; `truth`
     (`simulator.*` or `rig.*` keys) changes the rig's truth only: the estimator keeps the variant's
     rig YAML (a user's drawing that is off). `reuse`: the bags and coefficient file of an earlier run in
-    `out`, estimated again."""
+    `out`, estimated again. `answer`: the smoothed estimate or the filtered (live) one."""
     told = variant(name)
     v = replace(told, overrides={**told.overrides, **(truth or {})})
     config = load_config(overrides={**dict(told.overrides), **(overrides or {})})
@@ -132,13 +135,13 @@ def run_variant(
     loaded = load_coefficients(coeffs_path, config)
     calibrated = loaded.config(config)
     models = {
-        "guess": (config, estimator_for(config)),
-        "stage 1": (calibrated, estimator_for(calibrated, effects=loaded.effects)),
-        "stage 1+2": (calibrated, estimator_for(calibrated, loaded.coeffs, loaded.effects)),
+        "guess": (config, estimator_for(config, answer=answer)),
+        "stage 1": (calibrated, estimator_for(calibrated, effects=loaded.effects, answer=answer)),
+        "stage 1+2": (calibrated, estimator_for(calibrated, loaded.coeffs, loaded.effects, answer=answer)),
     }
     noise_rms = config.noise_rms
     figures = {
-        label: [bag_figures(estimate_bag(cfg, bag, est), noise_rms) for bag in bags[n_train:]]
+        label: [bag_figures(estimate_bag(cfg, bag, est, answer=answer), noise_rms) for bag in bags[n_train:]]
         for label, (cfg, est) in models.items()
     }
     cal = outcome.calibration if outcome else None
@@ -146,6 +149,7 @@ def run_variant(
         "variant": name,
         "description": v.description,
         "loss": loss,
+        "answer": answer,
         "overrides": overrides or {},
         "truth": truth or {},
         "train_seconds": seconds,
@@ -228,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="estimator parameter for every rig (e.g. contact.friction:=spinning_ring)")
     parser.add_argument("--reuse", action="store_true",
                         help="estimate the bags and coefficient file already in --out again (no simulation, training)")
+    parser.add_argument("--answer", default=SMOOTHED, choices=ANSWERS,
+                        help="the estimate the figures are of: smoothed (offline) or filtered (the live node's)")
     parser.add_argument("--truth", action="append", default=[], metavar="NAME:=VALUE",
                         help="the rig's truth for every rig, simulated but not told to the estimator "
                              "(e.g. simulator.ceramic.ring_inertia:=9.0e-3, rig.radial_clearance:=0.26e-3)")
@@ -237,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(not key.startswith(("simulator.", "rig.")) for key in truth):
         parser.error("--truth takes simulator.* and rig.* names only (the estimator's settings are -p)")
     args.out.mkdir(parents=True, exist_ok=True)
+    stem = args.loss + ("" if args.answer == SMOOTHED else f"_{args.answer}")
     results = []
     if args.variants:
         names = args.variants.split(",")
@@ -253,12 +260,12 @@ def main(argv: list[str] | None = None) -> int:
         )
         results.append(
             run_variant(name, args.out, args.train, args.test, args.loss, log, args.search, overrides, truth,
-                        args.reuse)
+                        args.reuse, args.answer)
         )
         print(table(results[-1:]), file=sys.stderr, flush=True)
-        (args.out / f"family_{args.loss}.json").write_text(json.dumps(results, indent=1))
+        (args.out / f"family_{stem}.json").write_text(json.dumps(results, indent=1))
     text = table(results) + "\n" + anatomy_table(results)
-    (args.out / f"family_{args.loss}.md").write_text(text)
+    (args.out / f"family_{stem}.md").write_text(text)
     print(text)
     return 0
 
