@@ -180,23 +180,29 @@ def bag_noise(
     size, segments = len(estimator.noise.process), record_segments(config, record, source)
     fitted, measurement = 1.0 / config.smoothing_noise_scale, np.asarray(estimator.noise.measurement)
 
-    def minus_two_log_l(noise: BagNoise) -> tuple[float, float]:
-        """-2 ln L of the bag's displacements and their mean NIS under the fitted Q times `noise`'s factors."""
-        total, nis = 0.0, []
+    def innovations(noise: BagNoise) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per segment: the innovations (N, 3), their covariances (N, 3, 3) and which are valid, under the fitted Q
+        times `noise`'s factors."""
+        parts = []
         for segment, start, _, start_time in segments:
             innovation, S = estimator.innovations(segment.etas, start, coeffs, effects, start_time,
                                                   noise.process_scale(size, fitted))
-            valid = np.isfinite(innovation).all(axis=1)
-            total += float(np.sum(errors_of_innovations(innovation, S, measurement, valid, "nll")))
-            used = innovation[valid]
-            nis.append(np.einsum("ni,ni->n", used, np.linalg.solve(S[valid], used[..., None])[..., 0]))
-        return total, float(np.mean(np.concatenate(nis)))
+            parts.append((innovation, S, np.isfinite(innovation).all(axis=1)))
+        return parts
 
+    def minus_two_log_l(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> float:
+        return sum(float(np.sum(errors_of_innovations(e, S, measurement, valid, "nll"))) for e, S, valid in parts)
+
+    as_fitted = innovations(BagNoise())
+    fitted_mean_nis = float(np.mean(np.concatenate([
+        np.einsum("ni,ni->n", e[valid], np.linalg.solve(S[valid], e[valid][..., None])[..., 0])
+        for e, S, valid in as_fitted
+    ])))
     factors, best, falls = [1.0] * len(Q_BLOCKS), [], []
-    taken, fitted_mean_nis = minus_two_log_l(BagNoise())
+    taken = minus_two_log_l(as_fitted)
     for block in range(len(Q_BLOCKS)):  # in turn, each with the factors taken before it
         def with_factor(f: float, block: int = block) -> float:
-            return minus_two_log_l(BagNoise(tuple(factors[:block] + [f] + factors[block + 1:])))[0]
+            return minus_two_log_l(innovations(BagNoise(tuple(factors[:block] + [f] + factors[block + 1:]))))
 
         tried = {f: with_factor(f) for f in BAG_NOISE_FACTORS}
         coarse = min(tried, key=tried.get)
