@@ -305,7 +305,7 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
     notes = ["axial support: yields above 36 kN (+-3 %) ...", "friction: mu 0.0004 and k_ZR 0.0012, ..."]
     coefficient_file = save_coefficients(tmp_path / "coefficients.yaml", coeffs, CONFIG,
                                          TrainingRecord(extra={"calibration": {"notes": notes}}))
-    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, coeffs))
+    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, coeffs, answer=FILTERED), answer=FILTERED)
     n_samples = int(expected.estimate.onset_index + len(expected.estimate.stamps_ns))
     recorded, recorded_batched = tmp_path / "live", tmp_path / "live_batched"
     d = domain(0)
@@ -336,6 +336,10 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert peer.wait_for(lambda: peer.count("received") == 2 * n_samples, 20), peer.latest.get(INPUT)
         assert peer.count("clock_jump_backward") == 1 and peer.count("batch_messages") == -(-n_samples // 100)
         assert peer.value(LAST, "end_reason") == "clock_jump" and peer.value(CONTACT, "drops") == "2"
+        # the first touchdown's summary: the live filter's factor on Q as the offline filtered answer's
+        factor = np.asarray(expected.estimate.process_scale)
+        assert float(peer.value(LAST, "process_noise_scale_max")) == pytest.approx(factor.max(), rel=1e-9)
+        assert float(peer.value(LAST, "process_noise_scale_mean")) == pytest.approx(factor.mean(), rel=1e-9)
         assert peer.count("gaps") == 0 and peer.count("rejected") == 0
         # the ring's speed topic only where the friction model spins the ring (the paper's friction has none)
         assert peer.node.count_publishers(CONFIG.topics.velocity) == 1
@@ -394,7 +398,7 @@ def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
     config = load_config(ring_rig)
     assert config.law.friction == "spinning_ring" and config.topics == CONFIG.topics
     bag, source = drop_bag(tmp_path / "drop")
-    expected = estimate_bag(config, bag, estimator_for(config)).estimate
+    expected = estimate_bag(config, bag, estimator_for(config, answer=FILTERED), answer=FILTERED).estimate
     recorded = tmp_path / "live"
     clouds: list[PointCloud2] = []
     d = domain(2)
@@ -427,7 +431,8 @@ def test_with_a_spinning_ring_the_node_publishes_the_rings_speed(tmp_path):
 def test_every_receive_mode_and_the_batched_output_give_the_offline_estimate(tmp_path, receive, output_mode):
     """The other `node.receive` modes, and the batched output (one PointCloud2 per EKF run) with drain."""
     bag, source = drop_bag(tmp_path / "drop")
-    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, Coefficients.zeros(CONFIG.kernel))).estimate
+    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, Coefficients.zeros(CONFIG.kernel), answer=FILTERED),
+                            answer=FILTERED).estimate
     recorded = tmp_path / "live"
     clouds: list[PointCloud2] = []
     d = domain(4)

@@ -423,3 +423,43 @@ def test_stream_equals_offline_with_the_amb_letting_go_in_time(kind, lead):
                                    make_chunk_filter(config.model(), config.noise, config.sample_period))
     out, _ = estimate_stream(estimator, *record, batches(kind, len(record[0])))
     assert_same(out, reference)
+
+
+ADAPTIVE = dataclasses.replace(CONFIG, adaptation=load_config().adaptation)
+#: The same rig three times stiffer, radially and axially: a drop unlike the one the filter's model makes.
+STIFFER = load_config(overrides={"contact.k_R": 3.0e9, "contact.c_R": 1.0e5, "contact.mu": 0.02,
+                                 "contact.k_Z": 3.0e9, "contact.c_Z": 1.0e5, "contact.k_ZR": 0.01})
+
+
+def adaptive_offline(stamps, measured, config=ADAPTIVE):
+    """`offline` with the filter's Q adapted (`filter.adaptive_process_noise`, the YAML's defaults)."""
+    from touchdown_ros.core.input_policy import InputPolicy, split_record
+    from touchdown_ros.workflows.offline import estimate_record
+
+    record = split_record(stamps, measured, InputPolicy.from_config(config))
+    estimator = make_estimator(config.model(), config.noise, config.sample_period, adaptation=config.adaptation)
+    return estimate_record(config, record, estimator)[0]
+
+
+def test_stream_adapts_q_as_offline_and_widens_it_on_a_drop_unlike_the_model():
+    """On a drop of a rig three times stiffer than the filter's model, the live filter's adaptive Q equals the
+    offline filtered answer's sample by sample (and every signal with it), its factor rises well above 1 in the
+    impacts and brings the NIS nearer 3 than Q as it is; on the model's own drop it stays near 1."""
+    assert ADAPTIVE.adaptation is not None, "the reference rig adapts the live filter's Q"
+    stiffer = model_drop_record(STIFFER)
+    adaptive = adaptive_offline(*stiffer)
+    model = ADAPTIVE.model()
+    estimator = StreamingEstimator(
+        model, ADAPTIVE.noise, ADAPTIVE.stream_settings(chunk_sizes=(8, 32)),
+        make_chunk_filter(model, ADAPTIVE.noise, ADAPTIVE.sample_period, adaptation=ADAPTIVE.adaptation),
+        adaptation=ADAPTIVE.adaptation,
+    )
+    out, _ = estimate_stream(estimator, *stiffer, batches("random_batches", len(stiffer[0])))
+    assert_same(out, adaptive)
+    np.testing.assert_allclose(out.process_scale, adaptive.process_scale, rtol=1e-9)
+    assert adaptive.process_scale.max() > 8.0
+    fixed = offline(*stiffer)
+    assert np.all(fixed.process_scale == 1.0)
+    assert abs(np.nanmean(adaptive.nis) - 3.0) < 0.5 * abs(np.nanmean(fixed.nis) - 3.0)
+    own = adaptive_offline(*model_drop_record())
+    assert np.mean(own.process_scale) < 1.5 < adaptive.process_scale.mean()

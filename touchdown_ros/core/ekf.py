@@ -10,6 +10,9 @@ Convention: the carried belief is the prior of the current sample; a step update
 with the sample's measurement (eq. 17b-c, e-f) and predicts the next prior (eq. 17a, d).
 A sample with any non-finite value is not used: the step only predicts. Covariances
 are symmetrised after each update.
+
+With a `NoiseAdaptation` the filter also carries a factor on Q that the innovations move
+(`adapted_log_scale`): the live filter's answer to a drop unlike the training drops.
 """
 from __future__ import annotations
 
@@ -48,6 +51,23 @@ class StepOutput(NamedTuple):
     innovation_cov: Array  # H P_{k,-} H^T + R
     Phi: Array  # df/dxi at xi_k, maps this sample to the next
     used: Array  # bool, measurement used
+    process_scale: Array | None = None  # the factor on Q of the next prior's prediction (with a NoiseAdaptation)
+
+
+class NoiseAdaptation(NamedTuple):
+    """Q scaled by a factor the innovations move, sample by sample (covariance matching, as adaptive
+    Kalman filters do; `adapted_log_scale`): ln(factor) rises while the NIS is above its expected 3 and
+    leaks back to 0 (factor 1, Q as fitted), held between 1 and `max_scale`."""
+
+    gain: float  # per sample: change of ln(factor) per unit of NIS / 3 - 1
+    leak: float  # per sample: the fraction of ln(factor) lost (1 / leak samples: its memory)
+    max_scale: float  # the largest factor on Q
+
+
+def adapted_log_scale(adaptation: NoiseAdaptation, log_scale: Array, nis: Array, used: Array) -> Array:
+    """ln of Q's factor after a sample of normalised innovation squared `nis` (unchanged where not `used`)."""
+    moved = (1.0 - adaptation.leak) * log_scale + adaptation.gain * (nis / OUTPUT_SIZE - 1.0)
+    return jnp.where(used, jnp.clip(moved, 0.0, jnp.log(adaptation.max_scale)), log_scale)
 
 
 def with_jacobian(function: Callable[[Array], Array]) -> Callable[[Array], tuple[Array, Array]]:
@@ -113,6 +133,24 @@ def filter_step(
     return next_prior, StepOutput(prior, filtered, innovation, S, Phi, used)
 
 
+def adaptive_filter_step(
+    transition: Transition,
+    measure: Measurement,
+    Q: Array,
+    R: Array,
+    adaptation: NoiseAdaptation,
+    carried: tuple[Belief, Array],
+    eta: Array,
+) -> tuple[tuple[Belief, Array], StepOutput]:
+    """`filter_step` with Q scaled by exp(ln factor) carried beside the prior and moved by this sample's NIS."""
+    prior, log_scale = carried
+    filtered, innovation, S, used = update(prior, eta, R, measure)
+    nis = innovation @ (_inverse_3x3(S) @ innovation)
+    log_scale = adapted_log_scale(adaptation, log_scale, nis, used)
+    next_prior, Phi = predict(filtered, jnp.exp(log_scale) * Q, transition)
+    return (next_prior, log_scale), StepOutput(prior, filtered, innovation, S, Phi, used, jnp.exp(log_scale))
+
+
 def extended_kalman_filter(
     transition: Transition,
     measure: Measurement,
@@ -122,6 +160,7 @@ def extended_kalman_filter(
     etas: Array,
     checkpoint: bool = False,
     times: Array | None = None,
+    adaptation: NoiseAdaptation | None = None,
 ) -> StepOutput:
     """Filter a whole record etas (N, 3) with lax.scan; fields of the result are stacked over N.
 
@@ -129,16 +168,20 @@ def extended_kalman_filter(
     pass instead of storing its intermediates (`jax.checkpoint`); the same numbers, and
     here about half the time of the gradient, which is bound by memory traffic.
     times: (N,) s, each sample's time, given to the transition as (xi, t) (a model with clocked effects).
+    adaptation: Q scaled as the innovations ask (`adaptive_filter_step`), from factor 1 at the first sample.
     """
 
-    def body(prior: Belief, inputs: tuple[Array, Array | None]) -> tuple[Belief, StepOutput]:
+    def body(carried, inputs: tuple[Array, Array | None]):
         eta, t = inputs
         step = transition if t is None else functools.partial(transition, t=t)
-        return filter_step(step, measure, Q, R, prior, eta)
+        if adaptation is None:
+            return filter_step(step, measure, Q, R, carried, eta)
+        return adaptive_filter_step(step, measure, Q, R, adaptation, carried, eta)
 
     if checkpoint:
         body = jax.checkpoint(body)
-    _, outputs = jax.lax.scan(body, initial, (etas, times))
+    start = initial if adaptation is None else (initial, jnp.zeros((), initial.mean.dtype))
+    _, outputs = jax.lax.scan(body, start, (etas, times))
     return outputs
 
 
@@ -226,13 +269,14 @@ def ekf(
     etas: Array,
     checkpoint: bool = False,
     start_time: Array | float = 0.0,
+    adaptation: NoiseAdaptation | None = None,
 ) -> StepOutput:
-    """`extended_kalman_filter` with the model's f and h and the noise's Q and R; the first sample
-    `start_time` s after the drop onset (what clocked effects read). `initial`'s position is the sensors'
-    reading there (`state_reading`)."""
+    """`extended_kalman_filter` with the model's f and h and the noise's Q and R (Q adapted with
+    `adaptation`); the first sample `start_time` s after the drop onset (what clocked effects read).
+    `initial`'s position is the sensors' reading there (`state_reading`)."""
     Q, R = jnp.diag(noise.process), jnp.diag(noise.measurement)
     initial = initial._replace(mean=state_reading(model, initial.mean))
     return extended_kalman_filter(
         model_transition(model, h), model_measurement(model), Q, R, initial, etas, checkpoint,
-        sample_times(model, h, etas.shape[0], start_time),
+        sample_times(model, h, etas.shape[0], start_time), adaptation,
     )

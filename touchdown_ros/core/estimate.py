@@ -12,7 +12,7 @@ from touchdown_ros.core.dynamics import (
     at_time, contact_force_xyz, contact_forces, contact_forces_and_jacobian, measurement, phi,
 )
 from touchdown_ros.core.effects import Effects
-from touchdown_ros.core.ekf import Belief, StepOutput, ekf, rts_smoother
+from touchdown_ros.core.ekf import Belief, NoiseAdaptation, StepOutput, ekf, rts_smoother
 from touchdown_ros.core.input_policy import GridError, InputPolicy, split_record
 from touchdown_ros.core.types import OMEGA_RING, VELOCITY, Coefficients, ContactForces, FilterNoise, Model
 
@@ -65,6 +65,7 @@ class Estimate(NamedTuple):
     innovation: Array  # (N, 3) m
     innovation_cov: Array  # (N, 3, 3)
     nis: Array  # (N,) normalised innovation squared
+    process_scale: Array  # (N,) the filter's factor on Q after each sample (1 unless it adapts Q)
     onset_index: int  # index of the drop onset in the input grid
     missing: int
 
@@ -267,7 +268,11 @@ PAD_BUCKET = 512
 
 
 def make_estimator(
-    model: Model, noise: FilterNoise, sample_period: float, model_variance: np.ndarray | None = None
+    model: Model,
+    noise: FilterNoise,
+    sample_period: float,
+    model_variance: np.ndarray | None = None,
+    adaptation: NoiseAdaptation | None = None,
 ) -> Estimator:
     """Compile the filter + smoother for one model; the returned function estimates many records.
 
@@ -280,13 +285,16 @@ def make_estimator(
     same rig through a second compiled function that takes them as arguments (one compilation
     for many sets). `process_scale` (n,): factors on the diagonal of Q for one record (default 1);
     `estimate.innovations(...)` runs the filter alone and returns its innovations and their covariances.
+    `adaptation`: Q moved by the innovations as the live node's filter moves it (`ekf.NoiseAdaptation`).
     """
 
     def scaled(process_scale: Array) -> FilterNoise:
         return noise._replace(process=jnp.asarray(noise.process) * process_scale)
 
     def run(model: Model, initial: Belief, etas: Array, start_time: Array, process_scale: Array):
-        outputs: StepOutput = ekf(model, scaled(process_scale), sample_period, initial, etas, start_time=start_time)
+        outputs: StepOutput = ekf(
+            model, scaled(process_scale), sample_period, initial, etas, start_time=start_time, adaptation=adaptation
+        )
         smoothed = rts_smoother(outputs)
         nis = jnp.einsum("ni,nij,nj->n", outputs.innovation, jnp.linalg.inv(outputs.innovation_cov), outputs.innovation)
         variance = force_model_variance(model, noise, sample_period) if model_variance is None else model_variance
@@ -298,10 +306,13 @@ def make_estimator(
             outputs.innovation,
             outputs.innovation_cov,
             nis,
+            jnp.ones(etas.shape[0]) if outputs.process_scale is None else outputs.process_scale,
         )
 
     def filter_only(model: Model, initial: Belief, etas: Array, start_time: Array, process_scale: Array):
-        outputs = ekf(model, scaled(process_scale), sample_period, initial, etas, start_time=start_time)
+        outputs = ekf(
+            model, scaled(process_scale), sample_period, initial, etas, start_time=start_time, adaptation=adaptation
+        )
         return outputs.innovation, outputs.innovation_cov
 
     def compiled(function: Callable) -> Callable:
@@ -345,7 +356,7 @@ def make_estimator(
         initial, padded, scale = inputs(etas, process_scale)
         outputs = run_compiled(coeffs, effects, initial, padded, start_time, scale)
         trimmed = jax.tree.map(lambda a: a[: len(etas)], jax.device_get(outputs))
-        filtered, smoothed, predicted, innovation, innovation_cov, nis = trimmed
+        filtered, smoothed, predicted, innovation, innovation_cov, nis, factor = trimmed
         return Estimate(
             stamps_ns=stamps_ns,
             measured=etas,
@@ -355,6 +366,7 @@ def make_estimator(
             innovation=innovation,
             innovation_cov=innovation_cov,
             nis=nis,
+            process_scale=factor,
             onset_index=onset_index,
             missing=missing,
         )
@@ -377,4 +389,5 @@ def make_estimator(
     estimate.innovations = innovations
     estimate.model = model  # what it was compiled for (estimate_bag gates its effects per bag)
     estimate.noise = noise
+    estimate.adaptation = adaptation
     return estimate

@@ -20,6 +20,7 @@ import yaml
 
 from touchdown_ros.core import effects as effects_library
 from touchdown_ros.core.effects import Effects
+from touchdown_ros.core.ekf import NoiseAdaptation
 from touchdown_ros.core.estimate import DropDetector
 from touchdown_ros.core.input_policy import InputPolicy
 from touchdown_ros.core.streaming.settings import StreamSettings
@@ -176,6 +177,8 @@ class Config:
     # the offline estimate's Q blocks scaled where a bag's own likelihood asks for it (`workflows.offline.bag_noise`),
     # where Q was fitted on training bags (`noise_fitted`)
     bag_process_noise: bool = True
+    # the live filter's Q moved by its innovations (`filter.adaptive_process_noise`); None: Q as it is
+    adaptation: NoiseAdaptation | None = None
     noise_fitted: bool = False  # Q from training bags (a coefficient file's calibration), not the YAML's guess
     # N^2 per axis: the model's own force error in contact, measured on the training bags (a coefficient
     # file's, `core.smoothing.missing_force_squares`); None: m^2 Q_v / h^2 (`core.estimate.force_model_variance`)
@@ -311,6 +314,20 @@ class Config:
         return None if self.force_model_variance is None else np.asarray(self.force_model_variance, dtype=float)
 
 
+def _adaptation(read: ParameterReader, sample_period: float) -> NoiseAdaptation | None:
+    """The live filter's adaptive Q (`filter.adaptive_process_noise` and its `filter.adaptation_*`), None if off."""
+    gain = read.number("filter.adaptation_gain", 0.1, positive=True)
+    memory = read.number("filter.adaptation_memory", 0.01, positive=True)
+    max_scale = read.number("filter.adaptation_max_scale", 64.0, positive=True)
+    if not read.flag("filter.adaptive_process_noise", True):
+        return None
+    if memory < sample_period:
+        raise ConfigError(f"filter.adaptation_memory = {memory:g} s is shorter than one sample ({sample_period:g} s)")
+    if max_scale < 1.0:
+        raise ConfigError(f"filter.adaptation_max_scale = {max_scale:g} must be at least 1 (Q as fitted)")
+    return NoiseAdaptation(gain=gain, leak=sample_period / memory, max_scale=max_scale)
+
+
 def reference_rig_path() -> Path:
     """The packaged default rig: the repo's config/ or the installed share/touchdown_ros/config/."""
     candidates = [
@@ -426,6 +443,7 @@ def config_from_parameters(flat: Mapping[str, Any], source: str = "<parameters>"
         regularisation=_regularisation(read),
         training_noise_scale=read.number("training.process_noise_scale", 1.0, positive=True),
         bag_process_noise=read.flag("filter.bag_process_noise", True),
+        adaptation=_adaptation(read, read.number("sensor.sample_period", positive=True)),
         law=law,
         training=_training_settings(read, law),
         topics=Topics(**{name: read.text(f"topics.{name}", default) for name, default in Topics().__dict__.items()}),

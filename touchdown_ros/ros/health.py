@@ -81,6 +81,7 @@ class DiagnosticsState:
     processing_ns: list[int] = field(default_factory=list)  # oldest sample of a block received -> published
     nis_sum: float = 0.0
     nis_count: int = 0
+    process_scale_max: float = math.nan  # the largest factor the filter's adaptive Q reached this period
     alarm_peak: float = math.nan  # N, largest force of the period's force alarms
     radial_contact: bool = False
     axial_contact: bool = False
@@ -94,6 +95,8 @@ class DiagnosticsState:
         finite = np.isfinite(estimates.nis)
         self.nis_sum += float(np.sum(estimates.nis[finite]))
         self.nis_count += int(np.count_nonzero(finite))
+        largest = float(np.max(estimates.process_scale))
+        self.process_scale_max = largest if math.isnan(self.process_scale_max) else max(self.process_scale_max, largest)
         self.radial_contact = bool(estimates.radial_contact[-1])
         self.axial_contact = bool(estimates.axial_contact[-1])
 
@@ -199,6 +202,7 @@ def statuses(
             else f"mean NIS {mean_nis:.3g} (3 expected)",
             {
                 "mean_nis": mean_nis,
+                "process_noise_scale_max": state.process_scale_max,
                 "estimated": counts.estimated,
                 "estimated_period": delta["estimated"],
                 "latency_p50_ms": float(p50),
@@ -262,6 +266,8 @@ def statuses(
                     "peak_axial_force_N": summary.peak_axial_force,
                     "peak_radial_force_N": summary.peak_radial_force,
                     "mean_nis": summary.mean_nis,
+                    "process_noise_scale_mean": summary.process_scale_mean,
+                    "process_noise_scale_max": summary.process_scale_max,
                     "end_reason": summary.end_reason,
                     "filter_restarts": summary.filter_restarts,
                 },

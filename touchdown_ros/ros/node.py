@@ -84,7 +84,8 @@ class EstimatorNode(Node):
             logger.info(f"calibration notes of the coefficient file: {notes}")
         settings = self.config.stream_settings()
         self.estimator = StreamingEstimator(
-            model, self.config.noise, settings, model_variance=self.config.model_variance()
+            model, self.config.noise, settings, model_variance=self.config.model_variance(),
+            adaptation=self.config.adaptation,
         )
         # Before warm_up and the worker start: threads created later inherit the policy.
         self.scheduling, refused = set_realtime_scheduling(node.realtime_priority)

@@ -88,10 +88,13 @@ def estimator_for(
     """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
     effects unless others, e.g. a coefficient file's, are given) for the `answer` it is read for:
     the smoothed one with the offline process noise (`Config.offline_noise`), the filtered one with
-    the fitted Q, as the live node filters. The force band adds the coefficient file's measured model
-    force error in contact (`Config.model_variance`), else the process noise read as a force."""
-    noise = config.offline_noise() if check_answer(answer) == SMOOTHED else config.noise
-    return make_estimator(config.model(coeffs, effects), noise, config.sample_period, config.model_variance())
+    the fitted Q, adapted to the innovations as the live node adapts it (`filter.adaptive_process_noise`). The
+    force band adds the coefficient file's measured model force error in contact (`Config.model_variance`), else
+    the process noise read as a force."""
+    smoothed = check_answer(answer) == SMOOTHED
+    noise = config.offline_noise() if smoothed else config.noise
+    return make_estimator(config.model(coeffs, effects), noise, config.sample_period, config.model_variance(),
+                          None if smoothed else config.adaptation)
 
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:
@@ -150,7 +153,7 @@ class BagNoise:
     factors: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
     best: tuple[float, ...] = (1.0,) * len(Q_BLOCKS)
     falls: tuple[float, ...] = (0.0,) * len(Q_BLOCKS)
-    fitted_mean_nis: float | None = None  # the bag's mean NIS under the fitted Q (the live filter's); None: not asked
+    fitted_mean_nis: float | None = None  # the bag's mean NIS under the fitted Q, fixed; None: not asked
 
     def process_scale(self, size: int, relative: float = 1.0) -> np.ndarray:
         """(size,) factors on the diagonal of Q (a spinning ring's speed: 1), times `relative`."""
@@ -416,6 +419,8 @@ def summarise(estimate: Estimate, truth: Truth | None, config: Config, answer: s
         "rmse_displacement_m": rmse(chosen.state[:, :3], estimate.measured).tolist(),
         "rmse_prediction_m": rmse(estimate.predicted_output, estimate.measured).tolist(),
         "mean_nis": float(np.nanmean(estimate.nis)),
+        "process_scale_mean": float(np.mean(estimate.process_scale)),
+        "process_scale_max": float(np.max(estimate.process_scale)),
         "peak_axial_force_N": float(force[peak_axial, 2]),
         "peak_radial_force_N": float(radial_force[peak_radial]),
         "peak_axial_force_std_N": float(force_std(force_cov[peak_axial])[2]),

@@ -1,7 +1,7 @@
 """The EKF over a chunk of grid rows as one compiled loop: one array in, one array out.
 
-A chunk buffer has C rows of measurements and a last row with the prior and the count
-of real rows; the compiled function returns the packed results (`outputs.PACKED_LAYOUT`)
+A chunk buffer has C rows of measurements and a last row with the prior (and the adaptive
+Q's factor) and the count of real rows; the compiled function returns the packed results (`outputs.PACKED_LAYOUT`)
 of each row and the prior after the last real row. A few compiled lengths C serve any
 number of rows (NaN padding that never advances the belief).
 """
@@ -15,26 +15,32 @@ import numpy as np
 from jax import Array
 
 from touchdown_ros.core.dynamics import at_time, contact_force_xyz, contact_forces_and_jacobian
-from touchdown_ros.core.ekf import Belief, _inverse_3x3, model_measurement, predict_with_rate, update
+from touchdown_ros.core.ekf import (
+    Belief, NoiseAdaptation, _inverse_3x3, adapted_log_scale, model_measurement, predict_with_rate, update,
+)
 from touchdown_ros.core.estimate import force_covariance, force_model_variance, law_force_covariance
 from touchdown_ros.core.streaming.outputs import PACKED_WIDTH
 from touchdown_ros.core.types import OMEGA_RING, STATE_SIZE, VELOCITY, FilterNoise, Model
 
 ChunkFunction = Callable[[np.ndarray], Array]
 
-# A chunk buffer's last row holds the prior (mean, covariance row-major), the count of real rows and the first
-# row's time after the drop onset; the largest state is 8 (a spinning ring's).
-assert PACKED_WIDTH > 8 + 64 + 1, "a chunk buffer's row must hold the prior, the count and the time"
+# A chunk buffer's last row holds the prior (mean, covariance row-major, ln of Q's factor), the count of real rows
+# and the first row's time after the drop onset; the largest state is 8 (a spinning ring's).
+assert PACKED_WIDTH > 8 + 64 + 1 + 2, "a chunk buffer's row must hold the prior, Q's factor, the count and the time"
 
 
 def prior_columns(size: int) -> tuple[slice, int]:
-    """Columns of a chunk buffer's last row that hold the prior of a state of `size` and the count (the first
-    row's time after the drop onset, s, in the column after it)."""
-    return slice(0, size + size * size), size + size * size
+    """Columns of a chunk buffer's last row that hold the prior of a state of `size` with ln of Q's factor after
+    it, and the count (the first row's time after the drop onset, s, in the column after it)."""
+    return slice(0, size + size * size + 1), size + size * size + 1
 
 
 def make_chunk_filter(
-    model: Model, noise: FilterNoise, sample_period: float, model_variance: np.ndarray | None = None
+    model: Model,
+    noise: FilterNoise,
+    sample_period: float,
+    model_variance: np.ndarray | None = None,
+    adaptation: NoiseAdaptation | None = None,
 ) -> ChunkFunction:
     """Jitted `buffer (C + 1, width) -> buffer`: the EKF over C rows, one compiled loop, one array each way.
 
@@ -56,7 +62,8 @@ def make_chunk_filter(
     small-loop option `core.xla` sets). One array each way because each argument and
     result costs dispatch time: called every 1.6 ms as the node does, a chunk of 16 rows
     takes 7-16 % less CPU than with the prior, rows and count as separate arrays
-    (bench/chunk_dispatch.py). `model_variance`: as `estimate.make_estimator`'s.
+    (bench/chunk_dispatch.py). `model_variance`, `adaptation` (Q moved by the innovations; its ln factor is
+    carried after the prior's covariance and written in `process_scale`): as `estimate.make_estimator`'s.
     """
     R, Q = jnp.diag(noise.measurement), jnp.diag(noise.process)
     size = len(noise.process)
@@ -66,13 +73,15 @@ def make_chunk_filter(
     if model_variance is None:
         model_variance = force_model_variance(model, noise, sample_period)
 
-    def row(prior: Belief, eta: Array, t: Array) -> tuple[Belief, Array]:
+    def row(prior: Belief, log_scale: Array, eta: Array, t: Array) -> tuple[Belief, Array, Array]:
         timed = at_time(model, t)
         filtered, innovation, S, used = update(prior, eta, R, measure)
-        next_prior, _, rate, rate_jacobian = predict_with_rate(timed, filtered, Q, sample_period)
+        nis = innovation @ (_inverse_3x3(S) @ innovation)  # NaN where the sample was not used
+        if adaptation is not None:
+            log_scale = adapted_log_scale(adaptation, log_scale, nis, used)
+        next_prior, _, rate, rate_jacobian = predict_with_rate(timed, filtered, jnp.exp(log_scale) * Q, sample_period)
         J = rate_jacobian[VELOCITY]
         forces, J_force = contact_forces_and_jacobian(timed, filtered.mean)
-        nis = innovation @ (_inverse_3x3(S) @ innovation)  # NaN where the sample was not used
         packed = jnp.concatenate(
             [
                 filtered.mean[:STATE_SIZE],
@@ -91,17 +100,19 @@ def make_chunk_filter(
                 S.reshape(9),
                 nis[None],
                 used[None].astype(eta.dtype),
+                jnp.exp(log_scale)[None],
             ]
         )
-        return next_prior, packed
+        return next_prior, log_scale, packed
 
     def run(buffer: Array) -> Array:
         last = buffer.shape[0] - 1
         count, start = buffer[last, count_column], buffer[last, count_column + 1]
 
         def real(carried: Array, eta: Array, t: Array) -> tuple[Array, Array]:
-            next_prior, packed = row(Belief(carried[:size], carried[size:].reshape(size, size)), eta, t)
-            return jnp.concatenate([next_prior.mean, next_prior.cov.reshape(size * size)]), packed
+            prior = Belief(carried[:size], carried[size:-1].reshape(size, size))
+            next_prior, log_scale, packed = row(prior, carried[-1], eta, t)
+            return jnp.concatenate([next_prior.mean, next_prior.cov.reshape(size * size), log_scale[None]]), packed
 
         def padding(carried: Array, eta: Array, t: Array) -> tuple[Array, Array]:
             return carried, jnp.full(PACKED_WIDTH, jnp.nan, eta.dtype)
@@ -118,9 +129,10 @@ def make_chunk_filter(
     return jax.jit(run)
 
 
-def flat_belief(belief: Belief) -> np.ndarray:
-    """(n + n^2,) mean and row-major covariance, as the last row of a chunk buffer holds them."""
-    return np.concatenate([np.asarray(belief.mean), np.asarray(belief.cov).reshape(-1)])
+def flat_belief(belief: Belief, log_scale: float = 0.0) -> np.ndarray:
+    """(n + n^2 + 1,) mean, row-major covariance and ln of Q's factor, as the last row of a chunk buffer holds
+    them."""
+    return np.concatenate([np.asarray(belief.mean), np.asarray(belief.cov).reshape(-1), [log_scale]])
 
 
 def chunk_buffer(etas: np.ndarray, size: int, prior: np.ndarray, start_time: float = 0.0) -> np.ndarray:

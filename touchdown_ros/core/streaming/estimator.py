@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from touchdown_ros.core.dynamics import measures
-from touchdown_ros.core.ekf import Belief, state_reading
+from touchdown_ros.core.ekf import Belief, NoiseAdaptation, state_reading
 from touchdown_ros.core.estimate import initial_belief
 from touchdown_ros.core.input_policy import bridge_rows, window_is_clean
 from touchdown_ros.core.streaming.chunk_filter import ChunkFunction, chunk_buffer, flat_belief, make_chunk_filter
@@ -46,14 +46,18 @@ class StreamingEstimator:
         settings: StreamSettings,
         chunk_filter: ChunkFunction | None = None,
         model_variance: np.ndarray | None = None,
+        adaptation: NoiseAdaptation | None = None,
     ):
-        """`chunk_filter`: a `make_chunk_filter` of the same model, noise and period, to share its compilations;
-        `model_variance` (3,) N^2: the model's own force error in contact (`make_chunk_filter`'s)."""
+        """`chunk_filter`: a `make_chunk_filter` of the same model, noise, period and adaptation, to share its
+        compilations; `model_variance` (3,) N^2: the model's own force error in contact; `adaptation`: Q moved by
+        the innovations, from its factor 1 at each drop onset (both `make_chunk_filter`'s)."""
         if not settings.chunk_sizes or min(settings.chunk_sizes) < 1:
             raise ValueError("chunk_sizes must be positive lengths")
         self.model, self.noise, self.settings = model, noise, settings
         self._sizes = tuple(sorted(set(int(c) for c in settings.chunk_sizes)))
-        self._chunk = chunk_filter or make_chunk_filter(model, noise, settings.sample_period, model_variance)
+        self._chunk = chunk_filter or make_chunk_filter(
+            model, noise, settings.sample_period, model_variance, adaptation
+        )
         self._initial_cov = np.asarray(noise.initial)
         # with measurement effects the onset's reading is moved to the state that reads it, as offline
         self._reading = jax.jit(functools.partial(state_reading, model)) if measures(model) else None

@@ -64,6 +64,8 @@ class TouchdownSummary(NamedTuple):
     mean_nis: float  # mean normalised innovation squared (3 expected)
     end_reason: str  # relevitated | clock_jump (back) | resync | end_of_stream
     filter_restarts: int = 0  # restarts after long gaps, clock jumps or runs of unusable samples
+    process_scale_mean: float = math.nan  # the filter's factor on Q, mean over the rows (1: Q as fitted)
+    process_scale_max: float = math.nan  # ... and its largest (`filter.adaptive_process_noise`)
 
 
 class StreamEvent(NamedTuple):
@@ -98,6 +100,7 @@ class StreamOutput(NamedTuple):
     innovation_cov: np.ndarray  # (n, 3, 3) m^2
     nis: np.ndarray  # (n,)
     used: np.ndarray  # (n,) bool, measurement used
+    process_scale: np.ndarray  # (n,) the filter's factor on Q after the row (1 unless it adapts Q)
 
     @staticmethod
     def empty() -> "StreamOutput":
@@ -137,6 +140,7 @@ PACKED_LAYOUT = (
     ("innovation_cov", 9),
     ("nis", 1),
     ("used", 1),
+    ("process_scale", 1),
 )
 PACKED_WIDTH = sum(width for _, width in PACKED_LAYOUT)
 _SHAPES = {"state_cov": (7, 7), "acceleration_cov": (3, 3), "force_cov": (3, 3), "innovation_cov": (3, 3)}

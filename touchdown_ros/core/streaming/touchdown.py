@@ -19,6 +19,7 @@ class TouchdownTally:
         self.axial_impacts, self.radial_impacts = ImpactCounter(), ImpactCounter()
         self.peak_axial = self.peak_radial = -math.inf
         self.nis_sum, self.nis_count = 0.0, 0
+        self.scale_sum, self.scale_max = 0.0, math.nan  # the filter's factor on Q over the rows
         self.restarts = 0
 
     def add(self, out: StreamOutput) -> None:
@@ -32,6 +33,9 @@ class TouchdownTally:
         self.end_stamp_ns = int(out.stamps_ns[-1])
         self.axial_impacts.add(out.axial_contact)
         self.radial_impacts.add(out.radial_contact)
+        self.scale_sum += float(out.process_scale.sum())
+        largest = float(out.process_scale.max())
+        self.scale_max = largest if math.isnan(self.scale_max) else max(self.scale_max, largest)
         if n_used:  # predict-only rows (gaps, refused values) are left out of the peaks, as offline
             self.peak_axial = max(self.peak_axial, float(out.F_z[used].max()))
             fx, fy = out.force_xyz[used, 0], out.force_xyz[used, 1]
@@ -53,4 +57,6 @@ class TouchdownTally:
             mean_nis=self.nis_sum / self.nis_count if self.nis_count else math.nan,
             end_reason=end_reason,
             filter_restarts=self.restarts,
+            process_scale_mean=self.scale_sum / self.samples if self.samples else math.nan,
+            process_scale_max=self.scale_max,
         )

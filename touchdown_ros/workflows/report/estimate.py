@@ -97,7 +97,9 @@ def summary_table(
         + " Q x r / z: the factors on the radial and axial blocks of Q with which the bag's own displacements are most"
         " likely, taken where they lower its -2 ln L by 10 or more (a drop unlike the training drops;"
         " `filter.bag_process_noise`, smoothed estimate of a trained rig only; 1 / 1: Q as fitted), and the bag's"
-        " mean NIS under Q as fitted, the live filter's (3 when the fitted Q holds on this bag)."
+        " mean NIS under Q as fitted (3 when the fitted Q holds on this bag). The filtered estimate, the live"
+        " node's, scales Q as its innovations ask instead (`filter.adaptive_process_noise`): the mean and largest"
+        " factor it took."
         + (f" The force band's model error in contact: {force_band}." if force_band else "")
         + "\n\n"
         + "".join(f"- Calibration: {note}\n" for note in notes)
@@ -133,7 +135,10 @@ def summary_table(
 
 def q_factors_text(summary: dict[str, Any]) -> str:
     """The factors on Q's radial and axial blocks of one bag's estimate ("1 / 1": Q as fitted), with the fall of
-    -2 ln L they bought and the bag's mean NIS under Q as fitted."""
+    -2 ln L they bought and the bag's mean NIS under Q as fitted; for the filtered answer whose filter adapted Q
+    (`filter.adaptive_process_noise`), the mean and largest factor it took."""
+    if summary.get("estimate") == "filtered" and summary.get("process_scale_max", 1.0) > 1.0:
+        return f"adapted: mean x{summary['process_scale_mean']:.2g}, max x{summary['process_scale_max']:.3g}"
     blocks = (summary.get("process_noise_factors") or {}).values()
     if not blocks:
         return "-"
