@@ -16,7 +16,8 @@ against the simulator's truth.
 
 With --reuse, each rig's bags and coefficient file already in DIR (an earlier run's) are estimated again
 without simulating or training: for a change to the estimate alone, measured on the same files. With
---answer filtered the figures are the filter's (the fitted Q, as the live node filters; no bag search), written to
+--answer filtered the figures are the filter's (the fitted Q adapted to the innovations, as the live node filters;
+no bag search; `-p filter.adaptive_process_noise:=false`: Q as fitted), written to
 DIR/family_LOSS_filtered.*.
 
 Writes DIR/family.json and DIR/family.md (the table of docs/calibration.md) and prints it.

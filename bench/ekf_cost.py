@@ -78,15 +78,19 @@ def jax_rows(model, noise, h, etas, initial, repeats, unrolls) -> dict[str, floa
         rows[f"JAX EKF inside lax.scan, unroll={unroll}"] = median_time(
             lambda: jax.block_until_ready(fn(etas_device)), repeats) / n
 
-    # The live node's chunk: EKF + filtered signals + NIS packed per row, padded chunk of fixed length.
-    chunk = make_chunk_filter(model, noise, h)
+    # The live node's chunk: EKF + filtered signals + NIS packed per row, padded chunk of fixed length; with Q as
+    # given and with Q adapted to the innovations (the reference rig's `filter.adaptive_process_noise`), in turn.
+    chunks = {"": make_chunk_filter(model, noise, h),
+              ", adaptive Q": make_chunk_filter(model, noise, h, adaptation=load_config().adaptation)}
     for size in (512, 16):
         buffer = chunk_buffer(etas[:size], size, flat_belief(initial))
-        jax.block_until_ready(chunk(buffer))
         calls = max(1, n // size)
-        seconds = median_time(lambda: [np.asarray(chunk(buffer)) for _ in range(calls)], repeats)
-        rows[f"node chunk of {size} (`make_chunk_filter`, EKF + signals, per call incl. dispatch)"] = \
-            seconds / (calls * size)
+        for chunk in chunks.values():
+            jax.block_until_ready(chunk(buffer))
+        for label, chunk in chunks.items():
+            seconds = median_time(lambda: [np.asarray(chunk(buffer)) for _ in range(calls)], repeats)
+            rows[f"node chunk of {size}{label} (`make_chunk_filter`, EKF + signals, per call incl. dispatch)"] = \
+                seconds / (calls * size)
 
     step = jax.jit(lambda belief, eta: ekf_step(model, noise, h, belief, eta)[0])
     samples = list(etas)

@@ -56,6 +56,10 @@ def test_named_node_section_and_overrides(tmp_path):
         ((LAMBDAS, "regularisation: []"), "'training.regularisation' must be a"),
         ((LAMBDAS, "regularisation: much"), "'training.regularisation' must be"),
         (("clearance_tolerance: 0.0 ", "clearance_tolerance: -1.0e-6 "), "'training.clearance_tolerance' must be >= 0"),
+        (("adaptation_memory: 0.01 ", "adaptation_memory: 1.0e-5 "),
+         "filter.adaptation_memory = 1e-05 s is shorter than one sample"),
+        (("adaptation_max_scale: 64.0", "adaptation_max_scale: 0.5"), "filter.adaptation_max_scale = 0.5 must be at least 1"),
+        (("adaptation_gain: 0.1", "adaptation_gain: -0.1"), "'filter.adaptation_gain' must be > 0"),
     ],
 )
 def test_bad_values_are_named(tmp_path, edit, message):
@@ -212,3 +216,11 @@ def test_a_lead_starts_the_record_in_levitation_and_needs_the_ambs_force():
         load_config(overrides={"drop_detection.lead": 3.0e-3})
     with pytest.raises(ConfigError, match="drop_detection.lead' must be >= 0"):
         load_config(overrides={**amb, "drop_detection.lead": -1.0e-3})
+
+
+def test_the_live_filters_adaptive_q_from_the_yaml():
+    """filter.adaptive_process_noise and its settings: the leak per sample is the period over the memory; off: None."""
+    adaptation = load_config(overrides={"filter.adaptation_memory": 0.002, "filter.adaptation_gain": 0.3}).adaptation
+    assert adaptation.leak == pytest.approx(1.0e-4 / 0.002) and adaptation.gain == 0.3
+    assert adaptation.max_scale == 64.0
+    assert load_config(overrides={"filter.adaptive_process_noise": False}).adaptation is None

@@ -18,6 +18,8 @@ from touchdown_ros.core.dynamics import (
 )
 from touchdown_ros.core.ekf import (
     Belief,
+    NoiseAdaptation,
+    adapted_log_scale,
     ekf,
     extended_kalman_filter,
     model_transition,
@@ -669,3 +671,14 @@ def test_drop_detection_finds_onset():
     assert abs(drop.onset(z) - onset) <= 3
     assert drop.onset(np.zeros(100)) is None
     assert drop._replace(lead=3.0e-3).onset(z) == drop.onset(z) - 30  # a lead starts the record in levitation
+
+
+def test_the_adaptive_q_factor_rises_with_the_nis_leaks_back_and_stays_in_its_range():
+    """ln(factor): + gain (NIS / 3 - 1), times (1 - leak); held in [0, ln max_scale]; unchanged on an unused sample."""
+    adaptation = NoiseAdaptation(gain=0.1, leak=0.01, max_scale=64.0)
+    step = lambda log_scale, nis, used=True: float(adapted_log_scale(adaptation, log_scale, nis, used))  # noqa: E731
+    assert step(0.0, 27.0) == pytest.approx(0.8)
+    assert step(1.0, 3.0) == pytest.approx(0.99)  # a consistent sample: the leak alone
+    assert step(0.0, 0.0) == 0.0  # never below Q as fitted
+    assert step(4.0, 300.0) == pytest.approx(math.log(64.0))
+    assert step(2.0, math.nan, used=False) == 2.0
