@@ -58,7 +58,8 @@ def test_named_node_section_and_overrides(tmp_path):
         (("clearance_tolerance: 0.0 ", "clearance_tolerance: -1.0e-6 "), "'training.clearance_tolerance' must be >= 0"),
         (("adaptation_memory: 0.01 ", "adaptation_memory: 1.0e-5 "),
          "filter.adaptation_memory = 1e-05 s is shorter than one sample"),
-        (("adaptation_max_scale: 64.0", "adaptation_max_scale: 0.5"), "filter.adaptation_max_scale = 0.5 must be at least 1"),
+        (("adaptation_max_scale: 64.0", "adaptation_max_scale: 0.5"),
+         "filter.adaptation_max_scale = 0.5 must be at least 1"),
         (("adaptation_gain: 0.1", "adaptation_gain: -0.1"), "'filter.adaptation_gain' must be > 0"),
     ],
 )
