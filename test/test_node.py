@@ -336,10 +336,10 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert peer.wait_for(lambda: peer.count("received") == 2 * n_samples, 20), peer.latest.get(INPUT)
         assert peer.count("clock_jump_backward") == 1 and peer.count("batch_messages") == -(-n_samples // 100)
         assert peer.value(LAST, "end_reason") == "clock_jump" and peer.value(CONTACT, "drops") == "2"
-        # the first touchdown's summary: the live filter's factor on Q as the offline filtered answer's
+        # the first touchdown's summary: the live filter's factor on Q as the offline filtered answer's (6 digits)
         factor = np.asarray(expected.estimate.process_scale)
-        assert float(peer.value(LAST, "process_noise_scale_max")) == pytest.approx(factor.max(), rel=1e-9)
-        assert float(peer.value(LAST, "process_noise_scale_mean")) == pytest.approx(factor.mean(), rel=1e-9)
+        assert float(peer.value(LAST, "process_noise_scale_max")) == pytest.approx(factor.max(), rel=1e-5)
+        assert float(peer.value(LAST, "process_noise_scale_mean")) == pytest.approx(factor.mean(), rel=1e-5)
         assert peer.count("gaps") == 0 and peer.count("rejected") == 0
         # the ring's speed topic only where the friction model spins the ring (the paper's friction has none)
         assert peer.node.count_publishers(CONFIG.topics.velocity) == 1
