@@ -389,5 +389,4 @@ def make_estimator(
     estimate.innovations = innovations
     estimate.model = model  # what it was compiled for (estimate_bag gates its effects per bag)
     estimate.noise = noise
-    estimate.adaptation = adaptation
     return estimate

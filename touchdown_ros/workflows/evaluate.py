@@ -1,6 +1,7 @@
 """Compare the constant baseline with PKBKR on every bag, with leave-one-experiment-out training."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -86,7 +87,10 @@ class _Quiet:
 def compare(config: Config, bags: Sequence[Path], per_bag: Sequence[Trainable]) -> list[BagComparison]:
     """Estimate each bag with the paper's constant model (ref. [13], no add-on effects) and with
     its trained model (PKBKR coefficients and the effects they were fitted with)."""
-    estimator = estimator_for(config, effects=Effects(), answer=FILTERED)  # the figures are the filtered estimate's
+    # the figures are the filtered estimate's, with Q as fitted for both: a comparison of models, not of the live
+    # filter's adaptive Q (which widens Q more for the worse model)
+    config = dataclasses.replace(config, adaptation=None)
+    estimator = estimator_for(config, effects=Effects(), answer=FILTERED)
     results = []
     for path, trained in progress(zip(bags, per_bag), len(bags), "estimate both methods"):
         constant = estimate_bag(config, path, estimator, fit_noise=False)  # both methods on the same Q

@@ -1,9 +1,9 @@
 """The EKF over a chunk of grid rows as one compiled loop: one array in, one array out.
 
-A chunk buffer has C rows of measurements and a last row with the prior (and the adaptive
-Q's factor) and the count of real rows; the compiled function returns the packed results (`outputs.PACKED_LAYOUT`)
-of each row and the prior after the last real row. A few compiled lengths C serve any
-number of rows (NaN padding that never advances the belief).
+A chunk buffer has C rows of measurements and a last row with the prior (and the adaptive Q's
+factor) and the count of real rows; the compiled function returns the packed results
+(`outputs.PACKED_LAYOUT`) of each row and the prior after the last real row. A few compiled
+lengths C serve any number of rows (NaN padding that never advances the belief).
 """
 from __future__ import annotations
 
