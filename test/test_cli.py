@@ -49,17 +49,27 @@ def exp_11_estimate(drop_bags):
     return estimate_bag(CONFIG, drop_bags / "exp_11", estimator_for(CONFIG))
 
 
+@pytest.fixture(scope="module")
+def exp_11_filtered(drop_bags):
+    """The filtered answer of exp_11 computed here, its Q adapted as the live node adapts it."""
+    from touchdown_ros.workflows.offline import estimate_bag, estimator_for
+
+    return estimate_bag(CONFIG, drop_bags / "exp_11", estimator_for(CONFIG, answer="filtered"), answer="filtered")
+
+
 @pytest.mark.parametrize("answer", ["smoothed", "filtered"])
 def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
-    answer, estimate_dir, filtered_dir, exp_11_estimate
+    answer, estimate_dir, filtered_dir, exp_11_estimate, exp_11_filtered
 ):
-    """The bag's /touchdown/* topics and the summary are of the smoother's estimate unless --filtered."""
+    """The bag's /touchdown/* topics and the summary are of the smoother's estimate unless --filtered (with the
+    live node's adaptive Q, whose factor summary.md gives)."""
     from touchdown_ros.core.estimate import force_std
     from touchdown_ros.core.metrics import relative_peak_error, rmse
     from touchdown_ros.core.types import VELOCITY
 
     out = estimate_dir if answer == "smoothed" else filtered_dir
-    estimate = exp_11_estimate.estimate
+    reference = exp_11_estimate if answer == "smoothed" else exp_11_filtered
+    estimate = reference.estimate
     chosen, other = (
         (estimate.smoothed, estimate.filtered) if answer == "smoothed" else (estimate.filtered, estimate.smoothed)
     )
@@ -90,7 +100,7 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     assert summary["rmse_displacement_m"] == pytest.approx(
         rmse(chosen.state[:, :3], estimate.measured).tolist(), rel=1e-12
     )
-    truth = exp_11_estimate.truth
+    truth = reference.truth
     assert summary["truth"]["peak_axial_force_error"] == pytest.approx(
         relative_peak_error(chosen.F_z, truth.contact_force[:, 2]), rel=1e-12
     )
@@ -107,8 +117,14 @@ def test_estimate_writes_the_smoother_by_default_and_the_filter_with_filtered(
     share = (inside & finite).sum(axis=0) / finite.sum(axis=0)
     assert summary["truth"]["velocity_within_2_std"] == pytest.approx(share.tolist(), rel=1e-12)
     assert f"**{'RTS smoother' if answer == 'smoothed' else 'EKF'} ({answer})**" in (out / "summary.md").read_text()
-    noise = "the fitted Q x 1 (filter.smoothing_noise_scale)" if answer == "smoothed" else "the fitted Q, as the live"
+    noise = "the fitted Q x 1 (filter.smoothing_noise_scale)" if answer == "smoothed" else (
+        "the fitted Q, as the live node's, scaled by a factor its innovations move (filter.adaptive_process_noise)")
     assert f"Process noise: {noise}" in (out / "summary.md").read_text()
+    factor = np.asarray(estimate.process_scale)
+    assert summary["process_scale_max"] == pytest.approx(float(factor.max()), rel=1e-12)
+    adapted = f"adapted: mean x{factor.mean():.2g}, max x{factor.max():.3g}"
+    assert (adapted in (out / "summary.md").read_text()) == (answer == "filtered")
+    assert (factor.max() > 1.0) == (answer == "filtered")  # the constant model misses: the live filter widens Q
     # the constant model has no measured model error: the band reads the process noise as a force, and says so
     assert "model error in contact: the process noise read as a force" in (out / "summary.md").read_text()
 

@@ -134,6 +134,8 @@ def estimate_bags(
                     f"the fitted Q x {config.smoothing_noise_scale:.3g} (filter.smoothing_noise_scale)"
                     if answer == SMOOTHED
                     else "the fitted Q, as the live node's"
+                    + (", scaled by a factor its innovations move (filter.adaptive_process_noise)"
+                       if config.adaptation else "")
                 ),
                 "force_band_model_error": force_band_source(config),
             },
