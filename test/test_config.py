@@ -220,8 +220,14 @@ def test_a_lead_starts_the_record_in_levitation_and_needs_the_ambs_force():
 
 
 def test_the_live_filters_adaptive_q_from_the_yaml():
-    """filter.adaptive_process_noise and its settings: the leak per sample is the period over the memory; off: None."""
+    """filter.adaptive_process_noise and its settings: the leak per sample is the period over the memory; off: None;
+    the live filter adapts a fitted Q only."""
     adaptation = load_config(overrides={"filter.adaptation_memory": 0.002, "filter.adaptation_gain": 0.3}).adaptation
     assert adaptation.leak == pytest.approx(1.0e-4 / 0.002) and adaptation.gain == 0.3
     assert adaptation.max_scale == 64.0
     assert load_config(overrides={"filter.adaptive_process_noise": False}).adaptation is None
+    # live only where Q was fitted on training bags (a coefficient file's), not on the YAML's guess
+    guess = load_config()
+    assert guess.live_adaptation is None
+    fitted = guess.calibrated(guess.nominal, guess.law, guess.kernel, guess.noise)
+    assert fitted.live_adaptation == guess.adaptation is not None

@@ -7,6 +7,8 @@ same domain with its own rclpy context to publish crafted input and to read
 """
 from __future__ import annotations
 
+import json
+
 import os
 import re
 import signal
@@ -31,7 +33,7 @@ from touchdown_ros.core.estimate import force_std
 from touchdown_ros.core.types import VELOCITY, Coefficients
 from touchdown_ros.io import cdr
 from touchdown_ros.io.bags import TopicSeries, list_topics, read_vector_topic, write_bag
-from touchdown_ros.io.coefficients import TrainingRecord, save_coefficients
+from touchdown_ros.io.coefficients import TrainingRecord, load_coefficients, save_coefficients
 from touchdown_ros.io.config import load_config, reference_rig_path
 from touchdown_ros.workflows.offline import FILTERED, estimate_bag, estimate_topics, estimator_for
 from touchdown_ros.ros import messages
@@ -305,7 +307,8 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
     notes = ["axial support: yields above 36 kN (+-3 %) ...", "friction: mu 0.0004 and k_ZR 0.0012, ..."]
     coefficient_file = save_coefficients(tmp_path / "coefficients.yaml", coeffs, CONFIG,
                                          TrainingRecord(extra={"calibration": {"notes": notes}}))
-    expected = estimate_bag(CONFIG, bag, estimator_for(CONFIG, coeffs, answer=FILTERED), answer=FILTERED)
+    fitted = load_coefficients(coefficient_file, CONFIG).config(CONFIG)  # as the node reads it: Q fitted, adapted
+    expected = estimate_bag(fitted, bag, estimator_for(fitted, coeffs, answer=FILTERED), answer=FILTERED)
     n_samples = int(expected.estimate.onset_index + len(expected.estimate.stamps_ns))
     recorded, recorded_batched = tmp_path / "live", tmp_path / "live_batched"
     d = domain(0)
@@ -361,6 +364,10 @@ def test_replayed_drop_through_the_node_equals_the_offline_estimate(tmp_path):
         assert_close(live.values, written.values, f"{series.topic}: node vs touchdown estimate --filtered")
     std = read_vector_topic(recorded, CONFIG.topics.contact_force_std)
     assert std.msgtype == "geometry_msgs/msg/Vector3Stamped" and std.values.max() > 0.0
+    # its summary gives the factor the adaptive Q took (the coefficient file's Q is fitted: `Config.live_adaptation`)
+    (summary,) = json.loads((offline / "summary.json").read_text())["bags"].values()
+    assert summary["process_scale_max"] == pytest.approx(float(factor.max()), rel=1e-12) and factor.max() > 1.0
+    assert f"adapted: mean x{factor.mean():.2g}, max x{factor.max():.3g}" in (offline / "summary.md").read_text()
 
 
 def fifo_allowed() -> bool:

@@ -85,7 +85,7 @@ class EstimatorNode(Node):
         settings = self.config.stream_settings()
         self.estimator = StreamingEstimator(
             model, self.config.noise, settings, model_variance=self.config.model_variance(),
-            adaptation=self.config.adaptation,
+            adaptation=self.config.live_adaptation,
         )
         # Before warm_up and the worker start: threads created later inherit the policy.
         self.scheduling, refused = set_realtime_scheduling(node.realtime_priority)

@@ -135,7 +135,7 @@ def estimate_bags(
                     if answer == SMOOTHED
                     else "the fitted Q, as the live node's"
                     + (", scaled by a factor its innovations move (filter.adaptive_process_noise)"
-                       if config.adaptation else "")
+                       if config.live_adaptation else "")
                 ),
                 "force_band_model_error": force_band_source(config),
             },

@@ -88,13 +88,13 @@ def estimator_for(
     """The compiled estimator of a rig (constant model unless coefficients are given; the rig's
     effects unless others, e.g. a coefficient file's, are given) for the `answer` it is read for:
     the smoothed one with the offline process noise (`Config.offline_noise`), the filtered one with
-    the fitted Q, adapted to the innovations as the live node adapts it (`filter.adaptive_process_noise`). The
+    the fitted Q, adapted to the innovations as the live node adapts it (`Config.live_adaptation`). The
     force band adds the coefficient file's measured model force error in contact (`Config.model_variance`), else
     the process noise read as a force."""
     smoothed = check_answer(answer) == SMOOTHED
     noise = config.offline_noise() if smoothed else config.noise
     return make_estimator(config.model(coeffs, effects), noise, config.sample_period, config.model_variance(),
-                          None if smoothed else config.adaptation)
+                          None if smoothed else config.live_adaptation)
 
 
 def bag_effects(config: Config, path: str | Path, effects: Effects) -> Effects:
