@@ -95,8 +95,7 @@ class DiagnosticsState:
         finite = np.isfinite(estimates.nis)
         self.nis_sum += float(np.sum(estimates.nis[finite]))
         self.nis_count += int(np.count_nonzero(finite))
-        largest = float(np.max(estimates.process_scale))
-        self.process_scale_max = largest if math.isnan(self.process_scale_max) else max(self.process_scale_max, largest)
+        self.process_scale_max = float(np.fmax(self.process_scale_max, estimates.process_scale.max()))
         self.radial_contact = bool(estimates.radial_contact[-1])
         self.axial_contact = bool(estimates.axial_contact[-1])
 

@@ -34,8 +34,7 @@ class TouchdownTally:
         self.axial_impacts.add(out.axial_contact)
         self.radial_impacts.add(out.radial_contact)
         self.scale_sum += float(out.process_scale.sum())
-        largest = float(out.process_scale.max())
-        self.scale_max = largest if math.isnan(self.scale_max) else max(self.scale_max, largest)
+        self.scale_max = float(np.fmax(self.scale_max, out.process_scale.max()))  # fmax: past the initial NaN
         if n_used:  # predict-only rows (gaps, refused values) are left out of the peaks, as offline
             self.peak_axial = max(self.peak_axial, float(out.F_z[used].max()))
             fx, fy = out.force_xyz[used, 0], out.force_xyz[used, 1]
